@@ -1,0 +1,237 @@
+"""Thin helpers around zenoh-python 1.x shared by every service node and the tools.
+
+Callbacks run on Zenoh's threads and a slow callback stalls the session, so subscriptions here only
+decode (cheap, and rejects bad payloads at the edge) and hand the message to a queue or a latest-value
+slot; nodes do their work on their own thread.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, TypeVar
+
+import zenoh
+
+from common import keys
+from common.codec import Decoder, Message, decode, encode
+
+M = TypeVar("M")
+log = logging.getLogger(__name__)
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+_zenoh_log_started = False
+
+
+def zenoh_config(mode: str, *, connect: Iterable[str] = (), listen: Iterable[str] = ()) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    listen = list(listen)
+    connect = list(connect)
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+        # wait for the router instead of failing at once when it is still starting
+        conf.insert_json5("connect/timeout_ms", "-1")
+    return conf
+
+
+def open_session(endpoint: str = DEFAULT_ENDPOINT, mode: str = "client") -> zenoh.Session:
+    global _zenoh_log_started
+    if not _zenoh_log_started:
+        zenoh.init_log_from_env_or("error")
+        _zenoh_log_started = True
+    listen = ["tcp/127.0.0.1:0"] if mode == "peer" else []
+    return zenoh.open(zenoh_config(mode, connect=[endpoint], listen=listen))
+
+
+class Latest:
+    """Latest-value slot written from a Zenoh callback thread, read from the node's thread."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._value = None
+        self._seq = 0
+
+    def set(self, value) -> None:
+        with self._lock:
+            self._value = value
+            self._seq += 1
+
+    def get(self) -> tuple[Any, int]:
+        with self._lock:
+            return self._value, self._seq
+
+
+@dataclass
+class Reply:
+    key: str
+    payload: bytes | None
+    error: str | None
+
+
+class Node:
+    """One Zenoh client session with typed publish/subscribe/query helpers and a liveliness token."""
+
+    def __init__(self, service: str, robot: str, endpoint: str = DEFAULT_ENDPOINT, logger: logging.Logger | None = None):
+        self.service = service
+        self.robot = robot
+        self.log = logger or logging.getLogger(service)
+        self.decoder = Decoder(self.log)
+        self.session = open_session(endpoint)
+        self._decls: list[Any] = []
+        self._pubs: dict[str, Any] = {}
+        self._token = None
+
+    # --- lifecycle -------------------------------------------------------------------------
+    def declare_alive(self) -> None:
+        self._token = self.session.liveliness().declare_token(keys.alive(self.robot, self.service))
+
+    def close(self) -> None:
+        for decl in reversed(self._decls):
+            try:
+                decl.undeclare()
+            except Exception:  # already gone with the session; nothing left to release
+                pass
+        self._decls.clear()
+        if self._token is not None:
+            try:
+                self._token.undeclare()
+            except Exception:
+                pass
+            self._token = None
+        if not self.session.is_closed():
+            self.session.close()
+
+    def __enter__(self) -> "Node":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- pub/sub ---------------------------------------------------------------------------
+    def publish(self, key: str, msg: Message) -> None:
+        pub = self._pubs.get(key)
+        if pub is None:
+            pub = self._pubs[key] = self.session.declare_publisher(key)
+            self._decls.append(pub)
+        pub.put(encode(msg))
+
+    def subscribe(self, key: str, cls: type[M], handler: Callable[[M, str], None]) -> None:
+        """Decode on the Zenoh thread and call `handler(msg, key)`; rejected payloads are logged and
+        counted, never delivered."""
+        def on_sample(sample: zenoh.Sample) -> None:
+            k = str(sample.key_expr)
+            msg = self.decoder(cls, sample.payload.to_bytes(), k)
+            if msg is not None:
+                handler(msg, k)
+        self._decls.append(self.session.declare_subscriber(key, on_sample))
+
+    def subscribe_queue(self, key: str, cls: type[M], inbox: "queue.Queue[tuple[str, Any]]") -> None:
+        self.subscribe(key, cls, lambda msg, k: inbox.put((k, msg)))
+
+    def subscribe_latest(self, key: str, cls: type[M]) -> Latest:
+        slot = Latest()
+        self.subscribe(key, cls, lambda msg, _k: slot.set(msg))
+        return slot
+
+    # --- queries ---------------------------------------------------------------------------
+    def queryable(self, key: str, handler: Callable[[zenoh.Query], None]) -> None:
+        self._decls.append(self.session.declare_queryable(key, handler))
+
+    def liveliness_subscriber(self, key: str, handler: Callable[[str, bool], None]) -> None:
+        def on_sample(sample: zenoh.Sample) -> None:
+            handler(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+        self._decls.append(self.session.liveliness().declare_subscriber(key, on_sample, history=True))
+
+
+def query(session: zenoh.Session, selector: str, payload: bytes | None = None, timeout_s: float = 5.0,
+          all_replies: bool = True) -> list[Reply]:
+    """Blocking query; with all_replies every replier answers (no consolidation)."""
+    kwargs: dict[str, Any] = {"timeout": timeout_s}
+    if payload is not None:
+        kwargs["payload"] = payload
+    if all_replies:
+        kwargs["consolidation"] = zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)
+        kwargs["target"] = zenoh.QueryTarget.ALL
+    out = []
+    for rep in session.get(selector, **kwargs):
+        if rep.ok is not None:
+            out.append(Reply(str(rep.ok.key_expr), rep.ok.payload.to_bytes(), None))
+        else:
+            out.append(Reply("", None, rep.err.payload.to_bytes().decode("utf-8", "replace")))
+    return out
+
+
+def query_one(session: zenoh.Session, selector: str, cls: type[M], payload: bytes | None = None,
+              timeout_s: float = 5.0) -> M:
+    """Query expecting one typed answer; raises LookupError with the reason otherwise."""
+    replies = query(session, selector, payload, timeout_s, all_replies=False)
+    for rep in replies:
+        if rep.error is not None:
+            raise LookupError(f"{selector}: {rep.error}")
+        return decode(cls, rep.payload)
+    raise LookupError(f"{selector}: no reply within {timeout_s:.1f} s")
+
+
+def reply(query_obj: zenoh.Query, key: str, msg: Message) -> None:
+    query_obj.reply(key, encode(msg))
+
+
+class AliveWatcher:
+    """Tracks liveliness tokens under a key pattern; waits on events, never on fixed sleeps."""
+
+    def __init__(self, session: zenoh.Session, pattern: str):
+        self._cond = threading.Condition()
+        self.alive: set[str] = set()
+        self._sub = session.liveliness().declare_subscriber(pattern, self._on, history=True)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            key = str(sample.key_expr)
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(key)
+            else:
+                self.alive.discard(key)
+            self._cond.notify_all()
+
+    def wait_for(self, predicate: Callable[[set[str]], bool], timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not predicate(self.alive):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+            return True
+
+    def is_alive(self, key: str) -> bool:
+        with self._cond:
+            return key in self.alive
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except Exception:
+            pass
+
+
+def install_stop_handlers(stop: threading.Event) -> None:
+    """SIGTERM and SIGINT set `stop` so the node leaves its loop and closes its session."""
+    def handler(signum, _frame):
+        log.info("signal %d received, stopping", signum)
+        stop.set()
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+def setup_logging(service: str, level: str = "INFO") -> logging.Logger:
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO),
+                        format=f"%(asctime)s %(levelname)s {service} %(name)s: %(message)s")
+    return logging.getLogger(service)

@@ -1,0 +1,220 @@
+"""Typed bus messages. Field names carry units and frames; all stamps are robot-clock seconds.
+
+Frames: `world` is the simulator's fixed frame (truth only); `odom` is the wheel-odometry frame;
+`vertex` is the frame of a taught route vertex (x forward along the route, y to the left, z up),
+so `T_vertex_robot` = (x_m, y_m, theta_rad) is the robot's SE(2) pose in the nearest vertex frame
+(thesis fig. 2.5): y is the lateral error, theta the heading error.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import ClassVar, Literal
+
+from common.codec import Message
+
+NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+def check_name(kind: str, value: str) -> str:
+    """Robot names and route ids become key-expression chunks: keep them plain."""
+    if not NAME_RE.match(value):
+        raise ValueError(f"{kind} {value!r} must be 1-64 characters of [A-Za-z0-9_-]")
+    return value
+
+
+ClockMode = Literal["lockstep", "realtime"]
+TrialMode = Literal["idle", "teach", "repeat"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Clock(Message):
+    """Published by the bridge once per control tick: the robot's time."""
+    stamp_s: float
+    tick: int
+    period_s: float
+    mode: ClockMode
+    trial: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class Odometry(Message):
+    """Wheel odometry: what the wheels did, blind to slip."""
+    stamp_s: float
+    tick: int
+    v_mps: float
+    w_radps: float
+    x_odom_m: float
+    y_odom_m: float
+    theta_odom_rad: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class TruthPose(Message):
+    """Simulator ground truth (sim backend only): pose in `world` and body velocity over ground."""
+    stamp_s: float
+    tick: int
+    trial: int
+    x_world_m: float
+    y_world_m: float
+    theta_world_rad: float
+    v_mps: float
+    w_radps: float
+    lateral_slip_mps: float
+
+
+LocStatus = Literal["ok", "dropout", "lost", "initializing", "teach", "idle"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class LocState(Message):
+    """Localizer output, one per sensor tick. No pose unless status is 'ok' (never a made-up one)."""
+    stamp_s: float
+    capture_stamp_s: float
+    tick: int
+    trial: int
+    path_id: str
+    source: Literal["pose", "vision"]
+    status: LocStatus
+    reason: str
+    vertex: int
+    distance_m: float
+    T_vertex_robot: tuple[float, float, float] | None
+    cov_T_vertex_robot: tuple[float, ...] | None
+    matched_features: int | None
+
+    def __post_init__(self):
+        if self.status == "ok" and (self.T_vertex_robot is None or self.cov_T_vertex_robot is None):
+            raise ValueError("status 'ok' requires T_vertex_robot and cov_T_vertex_robot")
+        if self.cov_T_vertex_robot is not None and len(self.cov_T_vertex_robot) != 9:
+            raise ValueError("cov_T_vertex_robot must hold 9 values (3x3 row-major)")
+        if self.vertex < 0:
+            raise ValueError("vertex must be >= 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class VelocityCommand(Message):
+    """Unicycle command in the robot frame; an Ackermann robot converts it itself (eq. 5.27)."""
+    stamp_s: float
+    tick: int
+    trial: int
+    v_mps: float
+    w_radps: float
+    source: str
+
+
+ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopped", "finished", "error"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControllerStatus(Message):
+    """One per control step: what the controller saw, decided and how long it took."""
+    stamp_s: float
+    tick: int
+    trial: int
+    algorithm: str
+    state: ControllerState
+    reason: str
+    path_id: str
+    vertex: int
+    distance_m: float
+    lateral_m: float
+    heading_rad: float
+    v_cmd_mps: float
+    w_cmd_radps: float
+    solve_ms: float
+    iterations: int
+    loc_age_s: float
+    rejected_msgs: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class BridgeStatus(Message):
+    """One per tick from the bridge: run state and the safety watchdog."""
+    stamp_s: float
+    tick: int
+    trial: int
+    mode: TrialMode
+    running: bool
+    watchdog_tripped: bool
+    cmd_age_s: float
+    v_cmd_applied_mps: float
+    w_cmd_applied_radps: float
+    rejected_msgs: int
+
+
+TrialEventKind = Literal["started", "ended"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrialEvent(Message):
+    stamp_s: float
+    trial: int
+    mode: TrialMode
+    event: TrialEventKind
+    reason: str
+    path_id: str
+
+
+ControlAction = Literal["prepare", "start", "stop", "ping"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControlRequest(Message):
+    """Trial control from the experiment runner or the CLI, sent as a query to each service.
+
+    prepare: get ready for `mode` on `path_id` (teach records it, repeat loads it); start: the
+    bridge starts the clock; stop: end the trial (teach: the localizer saves the route, a closed
+    loop if `loop`). `max_duration_s` <= 0 means no time limit.
+    """
+    stamp_s: float
+    action: ControlAction
+    mode: TrialMode
+    trial: int
+    path_id: str
+    speed_mps: float
+    max_duration_s: float
+    learning: bool
+    loop: bool
+
+    def __post_init__(self):
+        check_name("path_id", self.path_id)
+        if self.speed_mps < 0:
+            raise ValueError("speed_mps must be >= 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControlReply(Message):
+    stamp_s: float
+    service: str
+    ok: bool
+    detail: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class RouteMsg(Message):
+    """A taught route: vertex poses in the frame the route was taught in (its first vertex)."""
+    MAX_BYTES: ClassVar[int] = 16 * 1024 * 1024
+    path_id: str
+    loop: bool
+    vertex_spacing_m: float
+    x_m: list[float]
+    y_m: list[float]
+    theta_rad: list[float]
+    taught_by: str
+    stamp_s: float
+
+    def __post_init__(self):
+        check_name("path_id", self.path_id)
+        if not (len(self.x_m) == len(self.y_m) == len(self.theta_rad)):
+            raise ValueError("x_m, y_m and theta_rad must have equal lengths")
+        if len(self.x_m) < 2:
+            raise ValueError("a route needs at least 2 vertices")
+        if self.vertex_spacing_m <= 0:
+            raise ValueError("vertex_spacing_m must be > 0")
+
+
+ALL_MESSAGES: tuple[type[Message], ...] = (
+    Clock, Odometry, TruthPose, LocState, VelocityCommand, ControllerStatus, BridgeStatus,
+    TrialEvent, ControlRequest, ControlReply, RouteMsg,
+)

@@ -1,0 +1,163 @@
+"""The taught route: a chain of vertex poses every ~`spacing` metres, as VT&R keyframes are.
+
+A vertex frame has x along the route and y to the left, so the robot pose relative to its nearest
+vertex (thesis fig. 2.5) gives the lateral error directly as y and the heading error as theta.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from common import se2
+from common.messages import RouteMsg, check_name
+
+
+@dataclass(frozen=True)
+class Projection:
+    """Continuous projection of a pose onto the route polyline."""
+    vertex: int              # nearest vertex by Euclidean distance
+    T_vertex_robot: np.ndarray
+    distance_m: float        # arc length of the foot point along the route
+    lateral_m: float         # signed, left of the route positive
+    heading_rad: float       # robot heading minus route heading at the foot point
+    segment: int             # foot point lies on segment (segment, segment+1)
+
+
+class Path:
+    def __init__(self, path_id: str, poses, *, loop: bool = False, spacing_m: float = 0.25,
+                 taught_by: str = "", curvature_window_m: float = 1.0):
+        self.path_id = check_name("path_id", path_id)
+        poses = np.asarray(poses, dtype=float)
+        if poses.ndim != 2 or poses.shape[1] != 3 or len(poses) < 2:
+            raise ValueError("a path needs an (N>=2, 3) array of vertex poses (x, y, theta)")
+        if not np.all(np.isfinite(poses)):
+            raise ValueError("path poses must be finite")
+        self.poses = poses.copy()
+        self.poses[:, 2] = se2.wrap(self.poses[:, 2])
+        self.poses.setflags(write=False)
+        self.loop = bool(loop)
+        self.spacing_m = float(spacing_m)
+        self.taught_by = taught_by
+        seg = np.hypot(np.diff(poses[:, 0]), np.diff(poses[:, 1]))
+        if np.any(seg <= 1e-9):
+            raise ValueError("consecutive path vertices must not coincide")
+        self.segment_lengths = seg
+        self.s = np.concatenate([[0.0], np.cumsum(seg)])
+        self.length_m = float(self.s[-1])
+        self.curvature = self._curvature(curvature_window_m)
+        self._tree = cKDTree(poses[:, :2])
+
+    # --- construction -------------------------------------------------------------------
+    @classmethod
+    def from_msg(cls, msg: RouteMsg) -> "Path":
+        return cls(msg.path_id, np.column_stack([msg.x_m, msg.y_m, msg.theta_rad]), loop=msg.loop,
+                   spacing_m=msg.vertex_spacing_m, taught_by=msg.taught_by)
+
+    def to_msg(self, stamp_s: float) -> RouteMsg:
+        return RouteMsg(path_id=self.path_id, loop=self.loop, vertex_spacing_m=self.spacing_m,
+                        x_m=self.poses[:, 0].tolist(), y_m=self.poses[:, 1].tolist(),
+                        theta_rad=self.poses[:, 2].tolist(), taught_by=self.taught_by, stamp_s=stamp_s)
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def _curvature(self, window_m: float) -> np.ndarray:
+        """Signed curvature (1/m) per vertex: heading change over arc length across a window."""
+        n = len(self.poses)
+        half = max(1, int(round(0.5 * window_m / max(self.spacing_m, 1e-6))))
+        idx = np.arange(n)
+        lo, hi = np.clip(idx - half, 0, n - 1), np.clip(idx + half, 0, n - 1)
+        heading = np.unwrap(self.poses[:, 2])
+        ds = self.s[hi] - self.s[lo]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            kappa = np.where(ds > 0, (heading[hi] - heading[lo]) / ds, 0.0)
+        return kappa
+
+    # --- search -------------------------------------------------------------------------
+    def nearest_vertex(self, xy, hint: int | None = None, back_m: float = 2.0, ahead_m: float = 5.0) -> int:
+        """Nearest vertex by Euclidean distance. With a hint (the last known vertex) only a window
+        around it is searched, O(window), which also keeps a route that crosses itself or closes a
+        loop from jumping to the wrong pass; without one, a k-d tree search, O(log n)."""
+        xy = np.asarray(xy, dtype=float)[:2]
+        if hint is None:
+            return int(self._tree.query(xy)[1])
+        hint = int(np.clip(hint, 0, len(self) - 1))
+        lo = max(0, hint - int(np.ceil(back_m / self.spacing_m)))
+        hi = min(len(self), hint + int(np.ceil(ahead_m / self.spacing_m)) + 1)
+        d2 = np.sum((self.poses[lo:hi, :2] - xy) ** 2, axis=1)
+        return lo + int(np.argmin(d2))
+
+    def relative_pose(self, vertex: int, T_world_robot) -> np.ndarray:
+        """T_vertex_robot: the robot pose in the frame of `vertex` (thesis fig. 2.5)."""
+        return se2.between(self.poses[vertex], T_world_robot)
+
+    def localize(self, T_world_robot, hint: int | None = None) -> tuple[int, np.ndarray]:
+        i = self.nearest_vertex(T_world_robot, hint)
+        return i, self.relative_pose(i, T_world_robot)
+
+    def project(self, T_world_robot, hint: int | None = None) -> Projection:
+        """Foot point on the polyline next to the nearest vertex, for accurate error metrics."""
+        T = np.asarray(T_world_robot, dtype=float)
+        i = self.nearest_vertex(T, hint)
+        best = None
+        for a in (i - 1, i):
+            if a < 0 or a + 1 >= len(self):
+                continue
+            p0, p1 = self.poses[a, :2], self.poses[a + 1, :2]
+            d = p1 - p0
+            t = float(np.clip(np.dot(T[:2] - p0, d) / np.dot(d, d), 0.0, 1.0))
+            foot = p0 + t * d
+            dist2 = float(np.sum((T[:2] - foot) ** 2))
+            if best is None or dist2 < best[0]:
+                best = (dist2, a, t)
+        _, a, t = best
+        p0, p1 = self.poses[a], self.poses[a + 1]
+        heading = p0[2] + t * float(se2.wrap(p1[2] - p0[2]))
+        d = p1[:2] - p0[:2]
+        rel = T[:2] - (p0[:2] + t * d)
+        tangent = d / np.linalg.norm(d)
+        lateral = float(tangent[0] * rel[1] - tangent[1] * rel[0])
+        along_extra = 0.0
+        if (a == 0 and t == 0.0) or (a == len(self) - 2 and t == 1.0):
+            along_extra = float(np.dot(rel, tangent))  # before the start / beyond the end
+        return Projection(vertex=i, T_vertex_robot=self.relative_pose(i, T),
+                          distance_m=float(self.s[a] + t * self.segment_lengths[a] + along_extra),
+                          lateral_m=lateral, heading_rad=float(se2.wrap(T[2] - heading)), segment=a)
+
+    def pose_at(self, distance_m: float) -> np.ndarray:
+        """Interpolated route pose at an arc length (clamped to the route)."""
+        d = float(np.clip(distance_m, 0.0, self.length_m))
+        a = int(np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2))
+        t = (d - self.s[a]) / self.segment_lengths[a]
+        p0, p1 = self.poses[a], self.poses[a + 1]
+        xy = p0[:2] + t * (p1[:2] - p0[:2])
+        return np.array([xy[0], xy[1], float(se2.wrap(p0[2] + t * se2.wrap(p1[2] - p0[2])))])
+
+
+class RouteRecorder:
+    """Builds a route during teach: a new vertex whenever the robot has moved `spacing_m` from the
+    last one (the VT&R keyframe rule), keeping the robot's own heading at that moment."""
+
+    def __init__(self, spacing_m: float = 0.25):
+        if spacing_m <= 0:
+            raise ValueError("spacing_m must be > 0")
+        self.spacing_m = spacing_m
+        self.vertices: list[tuple[float, float, float]] = []
+
+    def add(self, T_world_robot) -> bool:
+        x, y, th = (float(v) for v in T_world_robot)
+        if not self.vertices:
+            self.vertices.append((x, y, th))
+            return True
+        lx, ly, _ = self.vertices[-1]
+        if np.hypot(x - lx, y - ly) >= self.spacing_m:
+            self.vertices.append((x, y, th))
+            return True
+        return False
+
+    def finish(self, path_id: str, *, loop: bool, taught_by: str = "") -> Path:
+        if len(self.vertices) < 2:
+            raise ValueError(f"teach recorded only {len(self.vertices)} vertex(es); drive further")
+        return Path(path_id, np.array(self.vertices), loop=loop, spacing_m=self.spacing_m, taught_by=taught_by)

@@ -1,0 +1,229 @@
+"""The scenario file: one TOML file describes one experiment. A public interface (DESIGN.md):
+the keys written there are accepted as written; everything else here is an extension."""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path as FsPath
+from typing import Literal
+
+from common.config import ConfigError
+from common.messages import check_name
+from common.robot import RobotParams, robot_from_preset
+from common.typecheck import TypeCheckError, from_dict, to_dict
+
+ALGORITHMS = ("fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc")
+Algorithm = Literal["fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc"]
+TerrainKind = Literal["side_slope", "slip", "rough", "rut"]
+
+# keys each terrain kind takes besides kind/center/radius_m, with defaults where optional
+_TERRAIN_KEYS: dict[str, dict[str, float | None]] = {
+    "side_slope": {"slope_deg": None, "downhill_deg": None},
+    "slip": {"traction": None},
+    "rough": {"amplitude": None},
+    "rut": {"depth_m": 0.0, "growth_m_per_pass": 0.01, "max_depth_m": 0.1},
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobotSection:
+    preset: str
+    name: str
+    params: RobotParams
+
+
+@dataclass(frozen=True, kw_only=True)
+class PathSection:
+    waypoints: list[tuple[float, float]]
+    loop: bool = False
+    vertex_spacing_m: float = 0.25
+    teach_speed_mps: float = 0.5
+    corner_radius_m: float = 3.0
+
+    def __post_init__(self):
+        if len(self.waypoints) < 2:
+            raise ValueError("waypoints: need at least 2 points")
+        if self.vertex_spacing_m <= 0 or self.teach_speed_mps <= 0 or self.corner_radius_m <= 0:
+            raise ValueError("vertex_spacing_m, teach_speed_mps and corner_radius_m must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TerrainPatch:
+    """A round patch of terrain. side_slope: tilt `slope_deg` falling towards `downhill_deg`
+    (world frame, counter-clockwise from +x); slip: `traction` in (0, 1] scales achieved speeds;
+    rough: `amplitude` = peak yaw-rate disturbance (rad/s) at 1 m/s; rut: `depth_m` grows by
+    `growth_m_per_pass` with every trial that crosses it, up to `max_depth_m`."""
+    kind: TerrainKind
+    center: tuple[float, float]
+    radius_m: float
+    slope_deg: float | None = None
+    downhill_deg: float | None = None
+    traction: float | None = None
+    amplitude: float | None = None
+    depth_m: float | None = None
+    growth_m_per_pass: float | None = None
+    max_depth_m: float | None = None
+
+    def __post_init__(self):
+        if self.radius_m <= 0:
+            raise ValueError("radius_m must be > 0")
+        own = _TERRAIN_KEYS[self.kind]
+        for name in ("slope_deg", "downhill_deg", "traction", "amplitude", "depth_m", "growth_m_per_pass",
+                     "max_depth_m"):
+            value = getattr(self, name)
+            if name not in own and value is not None:
+                raise ValueError(f"key {name!r} does not apply to a {self.kind} patch (it takes {list(own)})")
+            if name in own and value is None:
+                if own[name] is None:
+                    raise ValueError(f"a {self.kind} patch needs {name!r}")
+                object.__setattr__(self, name, own[name])
+        if self.kind == "slip" and not 0.0 < self.traction <= 1.0:
+            raise ValueError("traction must be in (0, 1]")
+        if self.kind == "side_slope" and not 0.0 <= self.slope_deg < 45.0:
+            raise ValueError("slope_deg must be in [0, 45)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LocalizationSection:
+    source: Literal["vision", "pose"] = "pose"
+    noise_m: float = 0.01
+    noise_heading_deg: float = 0.3
+    delay_s: float = 0.0
+    dropout_prob: float = 0.0       # chance per tick that a dropout starts
+    dropout_s: float = 0.3          # length of each dropout
+
+    def __post_init__(self):
+        if self.noise_m < 0 or self.noise_heading_deg < 0 or self.delay_s < 0 or self.dropout_s < 0:
+            raise ValueError("noise, delay and dropout lengths must be >= 0")
+        if not 0.0 <= self.dropout_prob <= 1.0:
+            raise ValueError("dropout_prob must be in [0, 1]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControllerSection:
+    algorithm: Algorithm = "fl"
+    horizon: int = 10
+    fl_gamma1: float = 1.0          # eq. 3.5 lateral gain (1/s^2)
+    fl_gamma2: float = 1.8          # eq. 3.5 heading gain (1/s)
+    curvature_feedforward: bool = True
+    loc_timeout_s: float = 0.5      # stop when the newest estimate is older than this
+    stop_decel_mps2: float = 0.4    # gentle deceleration into the end of the route
+
+    def __post_init__(self):
+        if self.horizon < 1:
+            raise ValueError("horizon must be >= 1")
+        if self.fl_gamma1 <= 0 or self.fl_gamma2 <= 0 or self.loc_timeout_s <= 0 or self.stop_decel_mps2 <= 0:
+            raise ValueError("fl_gamma1, fl_gamma2, loc_timeout_s and stop_decel_mps2 must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConstraintsSection:
+    lateral_m: float = 0.3
+    heading_deg: float = 15.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class SchedulerSection:
+    """Thesis chapter 4 / table 5.1 names. The scheduler service itself is a later issue."""
+    enabled: bool = False
+    v_init: float = 0.5
+    v_max: float = 2.0
+    gamma1: float = 0.15
+    gamma2: float = 0.1
+    lambda_L: float = 0.15
+    lambda_H: float = 10.0
+    lambda_feat: float = 30.0
+    lambda_omega: float = 1.0
+    lambda_db: float = 1.1
+    a_max: float = 0.5
+    a_min: float = -0.5
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrialsSection:
+    count: int = 1
+    speed: float = 0.5
+    speeds: list[float] | None = None
+    learning: bool = True
+    start_offset_m: float = 0.0       # lateral offset of the robot at the start of each repeat
+    start_offset_deg: float = 0.0
+    time_limit_factor: float = 3.0    # a trial is aborted after this many times its nominal time
+
+    def __post_init__(self):
+        if self.count < 1:
+            raise ValueError("count must be >= 1")
+        if self.speeds is not None and len(self.speeds) != self.count:
+            raise ValueError(f"speeds has {len(self.speeds)} entries for count = {self.count} trials")
+        for v in [self.speed] + list(self.speeds or []):
+            if v <= 0:
+                raise ValueError("trial speeds must be > 0")
+
+    def speed_of(self, trial: int) -> float:
+        return self.speeds[trial - 1] if self.speeds else self.speed
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimSection:
+    clock: Literal["lockstep", "realtime"] = "lockstep"
+    period_s: float = 0.1
+    physics_substeps: int = 10
+    watchdog_s: float = 0.3
+    lockstep_timeout_s: float = 2.0   # wall time to wait for a command before stepping anyway
+
+    def __post_init__(self):
+        if self.period_s <= 0 or self.physics_substeps < 1 or self.watchdog_s <= 0 or self.lockstep_timeout_s <= 0:
+            raise ValueError("period_s, physics_substeps, watchdog_s and lockstep_timeout_s must be positive")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Scenario:
+    name: str
+    seed: int = 0
+    robot: RobotSection
+    path: PathSection
+    terrain: list[TerrainPatch] = field(default_factory=list)
+    localization: LocalizationSection = field(default_factory=LocalizationSection)
+    controller: ControllerSection = field(default_factory=ControllerSection)
+    constraints: ConstraintsSection = field(default_factory=ConstraintsSection)
+    scheduler: SchedulerSection = field(default_factory=SchedulerSection)
+    trials: TrialsSection = field(default_factory=TrialsSection)
+    sim: SimSection = field(default_factory=SimSection)
+
+    def __post_init__(self):
+        check_name("scenario name", self.name.replace(".", "_"))
+
+    @property
+    def path_id(self) -> str:
+        return self.name.replace(".", "_")
+
+
+def parse_scenario(data: dict, where: str = "<scenario>") -> Scenario:
+    data = dict(data)
+    robot_table = dict(data.get("robot") or {})
+    if "preset" not in robot_table:
+        raise ConfigError(f"{where}: robot.preset: missing (husky | roc6 | grizzly | mats)")
+    preset = robot_table.pop("preset")
+    name = robot_table.pop("name", preset if isinstance(preset, str) else "robot")
+    if not isinstance(preset, str):
+        raise ConfigError(f"{where}: robot.preset: expected a string")
+    params = robot_from_preset(preset, robot_table, "robot")
+    data["robot"] = {"preset": preset, "name": name, "params": to_dict(params)}
+    try:
+        return from_dict(Scenario, data)
+    except TypeCheckError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def load_scenario(path: str | FsPath) -> Scenario:
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such scenario file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    try:
+        return parse_scenario(data, str(path))
+    except ConfigError as exc:
+        msg = str(exc)
+        raise ConfigError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None

@@ -1,0 +1,46 @@
+"""Turn a scenario into one typed config per service, written as TOML next to the run's outputs."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from common.config import dump_toml
+from common.scenario import Scenario
+from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
+from services.controller.config import ControllerConfig, FLConfig, LimitsConfig
+from services.localizer.config import LocalizerConfig, PoseSourceConfig
+
+
+def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
+    rp = sc.robot.params
+    robot = sc.robot.name
+    bridge = BridgeConfig(
+        robot_name=robot, backend="sim", seed=sc.seed, robot=rp, terrain=list(sc.terrain),
+        teach=TeachConfig(waypoints=list(sc.path.waypoints), loop=sc.path.loop,
+                          corner_radius_m=sc.path.corner_radius_m, speed_mps=sc.path.teach_speed_mps),
+        clock=ClockConfig(mode=sc.sim.clock, period_s=sc.sim.period_s, physics_substeps=sc.sim.physics_substeps,
+                          watchdog_s=sc.sim.watchdog_s, lockstep_timeout_s=sc.sim.lockstep_timeout_s),
+        start_offset_m=sc.trials.start_offset_m, start_offset_deg=sc.trials.start_offset_deg)
+    loc = sc.localization
+    localizer = LocalizerConfig(
+        robot_name=robot, source=loc.source, seed=sc.seed, data_dir=str(data_dir), period_s=sc.sim.period_s,
+        vertex_spacing_m=sc.path.vertex_spacing_m,
+        pose=PoseSourceConfig(noise_m=loc.noise_m, noise_heading_deg=loc.noise_heading_deg, delay_s=loc.delay_s,
+                              dropout_prob=loc.dropout_prob, dropout_s=loc.dropout_s))
+    ctl = sc.controller
+    controller = ControllerConfig(
+        robot_name=robot, algorithm=ctl.algorithm, clock_mode=sc.sim.clock, period_s=sc.sim.period_s,
+        loc_timeout_s=ctl.loc_timeout_s, stop_decel_mps2=ctl.stop_decel_mps2,
+        limits=LimitsConfig(v_max_mps=rp.v_max_mps, w_max_radps=rp.w_max_radps,
+                            max_curvature_per_m=rp.max_curvature if rp.drive == "ackermann" else 0.0),
+        fl=FLConfig(gamma1=ctl.fl_gamma1, gamma2=ctl.fl_gamma2, curvature_feedforward=ctl.curvature_feedforward))
+    return {"bridge": bridge, "localizer": localizer, "controller": controller}
+
+
+def write_service_configs(configs: dict[str, object], directory: str | Path) -> dict[str, Path]:
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for name, cfg in configs.items():
+        paths[name] = directory / f"{name}.toml"
+        paths[name].write_text(f"# generated from the scenario by lbc; one typed config per service\n{dump_toml(cfg)}")
+    return paths

@@ -1,0 +1,332 @@
+"""`lbc experiment run`: teach, then every repeat trial, through the real services over a router.
+
+The runner is only an orchestrator and an observer: it sends trial-control queries, watches the bus
+(truth, controller status, localization, trial events, liveliness), records everything to MCAP and
+computes the summary from simulator truth. It never computes a command.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import queue
+import sys
+import time
+from pathlib import Path as FsPath
+from typing import Any, TextIO
+
+import zenoh
+
+from common import keys
+from common.bus import DEFAULT_ENDPOINT, open_session, query_one
+from common.codec import decode, encode
+from common.config import ConfigError
+from common.messages import (ControllerStatus, ControlReply, ControlRequest, LocState, RouteMsg, TrialEvent,
+                             TruthPose)
+from common.path import Path
+from common.scenario import Scenario, load_scenario
+from deploy.configs import service_configs, write_service_configs
+from deploy.launcher import Launcher
+from deploy.metrics import TrialRecord, trial_metrics, truth_series
+from deploy.recorder import McapRecorder
+from deploy.router import free_port
+from services.bridge.teach_driver import smooth_waypoints
+from services.controller.node import AVAILABLE_ALGORITHMS
+
+log = logging.getLogger(__name__)
+SERVICES = ("localizer", "controller", "bridge")
+
+
+class ExperimentError(RuntimeError):
+    pass
+
+
+def check_supported(sc: Scenario) -> None:
+    """Refuse, with a clear reason, what this version cannot run yet (rather than run something else)."""
+    if sc.controller.algorithm not in AVAILABLE_ALGORITHMS:
+        raise ConfigError(f"controller.algorithm = {sc.controller.algorithm!r} is not available in this version "
+                          f"(available: {', '.join(AVAILABLE_ALGORITHMS)})")
+    if sc.localization.source != "pose":
+        raise ConfigError("localization.source = 'vision' is not available in this version; use 'pose'")
+    if sc.scheduler.enabled:
+        raise ConfigError("scheduler.enabled = true: the speed scheduler service is not available in this "
+                          "version; set enabled = false and give trials.speed or trials.speeds")
+
+
+class Progress:
+    """One live status line on a terminal; periodic plain lines otherwise (CI logs)."""
+
+    def __init__(self, stream: TextIO):
+        self.stream = stream
+        self.tty = stream.isatty()
+        self._last = 0.0
+
+    def update(self, text: str) -> None:
+        now = time.monotonic()
+        if self.tty:
+            self.stream.write("\r\033[K" + text)
+            self.stream.flush()
+        elif now - self._last >= 10.0:
+            self._last = now
+            self.stream.write(text + "\n")
+            self.stream.flush()
+
+    def line(self, text: str) -> None:
+        if self.tty:
+            self.stream.write("\r\033[K")
+        self.stream.write(text + "\n")
+        self.stream.flush()
+        self._last = time.monotonic()
+
+
+def _bar(frac: float, width: int = 24) -> str:
+    n = int(round(max(0.0, min(1.0, frac)) * width))
+    return "[" + "#" * n + "." * (width - n) + "]"
+
+
+def write_json_atomic(path: FsPath, data: Any) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w") as fh:
+        json.dump(data, fh, indent=2)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class Experiment:
+    def __init__(self, sc: Scenario, session, recorder: McapRecorder | None, progress: Progress,
+                 launcher: Launcher | None = None, ready_timeout_s: float = 60.0):
+        self.sc = sc
+        self.session = session
+        self.recorder = recorder
+        self.progress = progress
+        self.launcher = launcher
+        self.robot = sc.robot.name
+        self.path_id = sc.path_id
+        self.path: Path | None = None
+        self.events: queue.Queue = queue.Queue()
+        self.alive: set[str] = set()
+        self.ready_timeout_s = ready_timeout_s
+        r = self.robot
+        self._decls = [
+            session.declare_subscriber(keys.truth(r), lambda s: self.events.put(("truth", s.payload.to_bytes()))),
+            session.declare_subscriber(keys.ctrl_status(r), lambda s: self.events.put(("status", s.payload.to_bytes()))),
+            session.declare_subscriber(keys.loc_state(r), lambda s: self.events.put(("loc", s.payload.to_bytes()))),
+            session.declare_subscriber(keys.trial_event(r), lambda s: self.events.put(("event", s.payload.to_bytes()))),
+            session.liveliness().declare_subscriber(keys.alive_all(r), self._on_alive, history=True),
+        ]
+
+    def close(self) -> None:
+        for d in self._decls:
+            try:
+                d.undeclare()
+            except Exception:
+                pass
+
+    def _on_alive(self, sample) -> None:
+        self.events.put(("alive", (str(sample.key_expr).rsplit("/", 1)[-1],
+                                   sample.kind == zenoh.SampleKind.PUT)))
+
+    # --- plumbing ----------------------------------------------------------------------------
+    def _check_children(self) -> None:
+        if self.launcher is None:
+            return
+        dead = self.launcher.exited()
+        if dead:
+            c = dead[0]
+            raise ExperimentError(f"{c.name} exited with code {c.proc.returncode}; last lines of {c.log_path}:\n"
+                                  f"{c.tail()}")
+
+    def _next_event(self, timeout: float):
+        try:
+            kind, data = self.events.get(timeout=timeout)
+        except queue.Empty:
+            self._check_children()
+            return None, None
+        if kind == "alive":
+            name, up = data
+            (self.alive.add if up else self.alive.discard)(name)
+            return kind, data
+        cls = {"truth": TruthPose, "status": ControllerStatus, "loc": LocState, "event": TrialEvent}[kind]
+        return kind, decode(cls, data)
+
+    def wait_ready(self) -> None:
+        deadline = time.monotonic() + self.ready_timeout_s
+        self.progress.update("waiting for services: " + ", ".join(SERVICES))
+        while not all(s in self.alive for s in SERVICES):
+            if time.monotonic() > deadline:
+                missing = [s for s in SERVICES if s not in self.alive]
+                raise ExperimentError(f"services not up within {self.ready_timeout_s:.0f} s: {missing}")
+            self._next_event(0.2)
+        self.progress.line(f"services up: {', '.join(SERVICES)} (robot {self.robot})")
+
+    def control(self, service: str, action: str, mode: str, trial: int, speed: float = 0.0,
+                max_duration_s: float = 0.0) -> ControlReply:
+        req = ControlRequest(stamp_s=time.time(), action=action, mode=mode, trial=trial, path_id=self.path_id,
+                             speed_mps=speed, max_duration_s=max_duration_s, learning=self.sc.trials.learning,
+                             loop=self.sc.path.loop)
+        key = keys.control(self.robot, service)
+        payload = encode(req)
+        if self.recorder:
+            self.recorder.record(key, payload)
+        try:
+            rep = query_one(self.session, key, ControlReply, payload=payload, timeout_s=30.0)
+        except LookupError as exc:
+            self._check_children()
+            raise ExperimentError(f"{service} did not answer {action}: {exc}") from None
+        if self.recorder:
+            self.recorder.record(key + "/reply", encode(rep))
+        if not rep.ok:
+            raise ExperimentError(f"{service} refused {action} {mode} trial {trial}: {rep.detail}")
+        log.info("%s %s: %s", service, action, rep.detail)
+        return rep
+
+    # --- phases ------------------------------------------------------------------------------
+    def teach(self) -> Path:
+        sc = self.sc
+        ref = smooth_waypoints(sc.path.waypoints, sc.path.corner_radius_m, sc.path.loop)
+        ref_len = float(sum(math.hypot(*d) for d in (ref[1:, :2] - ref[:-1, :2])))
+        for s in SERVICES:
+            self.control(s, "prepare", "teach", 0)
+        t_wall = time.monotonic()
+        self.control("bridge", "start", "teach", 0)
+        driven, last = 0.0, None
+        while True:
+            kind, msg = self._next_event(1.0)
+            if kind == "truth" and msg.trial == 0:
+                if last is not None:
+                    driven += math.hypot(msg.x_world_m - last.x_world_m, msg.y_world_m - last.y_world_m)
+                last = msg
+                self.progress.update(f"teach   {_bar(driven / ref_len)} {driven:6.1f}/{ref_len:.1f} m  "
+                                     f"t={msg.stamp_s:7.1f} s")
+            elif kind == "event" and msg.event == "ended" and msg.mode == "teach":
+                break
+            elif kind == "alive" and not msg[1] and msg[0] in ("bridge", "localizer"):
+                raise ExperimentError(f"{msg[0]} disappeared during teach")
+        rep = self.control("localizer", "stop", "teach", 0)
+        self.path = Path.from_msg(query_one(self.session, keys.route(self.path_id), RouteMsg, timeout_s=10.0))
+        self.progress.line(f"teach   done in {time.monotonic() - t_wall:.1f} s wall: {rep.detail}")
+        return self.path
+
+    def repeat(self, trial: int, speed: float) -> TrialRecord:
+        path = self.path
+        nominal_s = path.length_m / max(speed, 1e-3)
+        limit_s = self.sc.trials.time_limit_factor * nominal_s + 10.0
+        rec = TrialRecord(trial=trial, speed_mps=speed)
+        for s in SERVICES:
+            self.control(s, "prepare", "repeat", trial, speed, limit_s)
+        t_wall = time.monotonic()
+        self.control("bridge", "start", "repeat", trial, speed, limit_s)
+        finished, stopping, hint = False, False, 0
+        count = self.sc.trials.count
+        last_progress = None
+        while True:
+            kind, msg = self._next_event(1.0)
+            if kind is None:
+                if last_progress is not None and time.monotonic() - last_progress > 60.0:
+                    raise ExperimentError(f"trial {trial}: no truth from the bridge for 60 s")
+                continue
+            if kind == "alive":
+                name, up = msg
+                if not up and name in SERVICES:
+                    rec.end_reason = f"{name} disappeared"
+                    if name != "bridge":
+                        try:
+                            self.control("bridge", "stop", "repeat", trial)
+                        except ExperimentError:
+                            pass
+                    raise ExperimentError(f"trial {trial}: {name} disappeared mid-trial")
+                continue
+            if getattr(msg, "trial", trial) != trial:
+                continue
+            if kind == "truth":
+                rec.truth.append(msg)
+                last_progress = time.monotonic()
+                pr = path.project((msg.x_world_m, msg.y_world_m, msg.theta_world_rad), hint)
+                hint = pr.vertex
+                self.progress.update(f"trial {trial:>2}/{count} {_bar(pr.distance_m / path.length_m)} "
+                                     f"{pr.distance_m:6.1f}/{path.length_m:.1f} m  lat {pr.lateral_m:+.3f} m  "
+                                     f"v {msg.v_mps:.2f} m/s  t={msg.stamp_s:7.1f} s")
+                if finished and not stopping and abs(msg.v_mps) < 0.01 and abs(msg.w_radps) < 0.01:
+                    stopping = True
+                    self.control("bridge", "stop", "repeat", trial)
+            elif kind == "status":
+                rec.status.append(msg)
+                finished = finished or msg.state == "finished"
+            elif kind == "loc":
+                rec.loc.append(msg)
+            elif kind == "event" and msg.event == "ended" and msg.mode == "repeat":
+                rec.completed = finished
+                rec.end_reason = "end of route" if finished else msg.reason
+                break
+        rec.wall_s = time.monotonic() - t_wall
+        return rec
+
+
+def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: str | None = None,
+                   progress_stream: TextIO = sys.stderr, log_level: str = "INFO") -> dict:
+    """Run a whole experiment; returns the summary (also written to out_dir/summary.json)."""
+    t_start = time.monotonic()
+    sc = load_scenario(scenario_path)
+    check_supported(sc)
+    out = FsPath(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    progress = Progress(progress_stream)
+    launcher = None
+    if connect is None:
+        port = free_port()
+        endpoint = f"tcp/127.0.0.1:{port}"
+        # a private data dir per run: the taught route belongs to this experiment
+        configs = service_configs(sc, (out / "data").resolve())
+        paths = write_service_configs(configs, out / "config")
+        launcher = Launcher(endpoint, out / "logs")
+        launcher.start_router(port)
+        for s in SERVICES:
+            launcher.start_service(s, paths[s], log_level)
+        progress.line(f"started router on {endpoint} and {', '.join(SERVICES)} (logs in {out / 'logs'})")
+    else:
+        endpoint = connect
+    summary: dict[str, Any] = {"scenario": sc.name, "algorithm": sc.controller.algorithm, "trials": []}
+    session = recorder = exp = None
+    series = []
+    try:
+        session = open_session(endpoint)
+        recorder = McapRecorder(out / "run.mcap", session)
+        exp = Experiment(sc, session, recorder, progress, launcher)
+        exp.wait_ready()
+        path = exp.teach()
+        limits = (sc.constraints.lateral_m, math.radians(sc.constraints.heading_deg))
+        for trial in range(1, sc.trials.count + 1):
+            rec = exp.repeat(trial, sc.trials.speed_of(trial))
+            s = truth_series(path, rec)
+            series.append(s)
+            m = trial_metrics(path, rec, s, *limits, experiences_total=0)
+            summary["trials"].append(m)
+            write_json_atomic(out / "summary.json", summary)  # nothing lost if a later trial fails
+            progress.line(f"trial {trial:>2}/{sc.trials.count} {'done' if rec.completed else 'NOT COMPLETED'}: "
+                          f"max lat {m['max_lateral_m']:.3f} m, rms {m['rms_lateral_m']:.3f} m, "
+                          f"max head {math.degrees(m['max_heading_rad']):.1f} deg, "
+                          f"{m['travel_time_s']:.1f} s, violations {m['constraint_violations']}, "
+                          f"wall {rec.wall_s:.1f} s")
+    finally:
+        if exp is not None:
+            exp.close()
+        if recorder is not None:
+            recorder.close()
+        if session is not None:
+            session.close()
+        if launcher is not None:
+            launcher.stop()
+        write_json_atomic(out / "summary.json", summary)
+    wall = time.monotonic() - t_start
+    sim_s = sum(t["travel_time_s"] for t in summary["trials"])
+    run_info = {"scenario file": str(scenario_path), "endpoint": endpoint, "robot": f"{sc.robot.name} ({sc.robot.preset})",
+                "wall time (s)": round(wall, 1), "repeat sim time (s)": round(sim_s, 1),
+                "wall s per simulated minute": round(wall / (sim_s / 60.0), 2) if sim_s > 0 else None,
+                "messages recorded": recorder.count if recorder else 0}
+    from deploy.report import write_report  # matplotlib only when a report is written
+    write_report(out / "report.html", sc, exp.path, series, summary, run_info)
+    progress.line(f"wrote {out / 'summary.json'}, {out / 'report.html'}, {out / 'run.mcap'} in {wall:.1f} s")
+    return summary

@@ -1,0 +1,82 @@
+"""Records every bus message under `lbc/**` into an MCAP file, exactly as it travelled (msgpack).
+
+The Zenoh callback only enqueues; a writer thread owns the file. `close()` always finishes the
+file (an unfinished MCAP cannot be opened by indexed readers), so call it in a `finally`.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+from mcap.writer import Writer
+
+from common import keys
+
+log = logging.getLogger(__name__)
+
+
+class McapRecorder:
+    def __init__(self, path: str | Path, session: zenoh.Session, key: str = keys.everything()):
+        self.path = Path(path)
+        self._fh = open(self.path, "wb")
+        self._writer = Writer(self._fh)
+        self._writer.start(profile="", library="lbc")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._seq: dict[str, int] = {}
+        self._queue: queue.Queue = queue.Queue()
+        self.count = 0
+        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        self._thread.start()
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+
+    def record(self, key: str, data: bytes) -> None:
+        """Add a message that did not travel as a publication (e.g. a control request)."""
+        self._queue.put((key, data, time.time_ns()))
+
+    def _channel(self, key: str) -> int:
+        ch = self._channels.get(key)
+        if ch is None:
+            cls = keys.message_type(key)
+            name = cls.__name__ if cls is not None else "unknown"
+            sid = self._schemas.get(name)
+            if sid is None:
+                # no schema language describes msgpack maps; the name tells readers which dataclass
+                sid = self._schemas[name] = self._writer.register_schema(name=name, encoding="", data=b"")
+            ch = self._channels[key] = self._writer.register_channel(topic=key, message_encoding="msgpack",
+                                                                     schema_id=sid)
+        return ch
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            key, data, t_ns = item
+            try:
+                ch = self._channel(key)
+                seq = self._seq.get(key, 0)
+                self._seq[key] = seq + 1
+                self._writer.add_message(channel_id=ch, log_time=t_ns, publish_time=t_ns, data=data, sequence=seq)
+                self.count += 1
+            except Exception:  # keep recording the rest
+                log.exception("cannot record message on %s", key)
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except Exception:
+            pass
+        self._queue.put(None)
+        self._thread.join(timeout=30)
+        try:
+            self._writer.finish()
+        finally:
+            self._fh.close()

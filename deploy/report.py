@@ -1,0 +1,251 @@
+"""One self-contained HTML report of a repeat experiment: map, tracking errors, learning over
+trials, speeds and solve times. Plots are embedded as base64 PNGs so the file can be mailed or
+archived alone (no external JS/CSS, no network)."""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import logging
+import math
+import pathlib
+from contextlib import contextmanager
+
+import matplotlib
+
+matplotlib.use("Agg")  # headless: runs on CI machines and robots without a display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import Normalize  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Circle, Patch  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
+
+from common.path import Path  # noqa: E402
+from common.scenario import Scenario  # noqa: E402
+from deploy.metrics import TrialSeries  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+_TERRAIN_COLOURS = {"side_slope": "tab:orange", "slip": "tab:blue", "rough": "tab:brown", "rut": "tab:purple"}
+_CMAP = plt.get_cmap("viridis")
+_CSS = """body{font-family:sans-serif;max-width:1100px;margin:1em auto;color:#222}
+h1{margin-bottom:.2em}h2{border-bottom:1px solid #ccc;margin-top:1.6em}
+table{border-collapse:collapse;font-size:.85em}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
+th{background:#eee}td.k{text-align:left;font-weight:bold}tr.bad td{background:#fde8e8}
+img{max-width:100%}.cap{color:#555;font-size:.9em}"""
+
+
+@contextmanager
+def _figure(nrows: int = 1, ncols: int = 1, size=(10, 4.5)):
+    """A figure that is always closed, so long sweeps don't accumulate open figures."""
+    fig, axes = plt.subplots(nrows, ncols, figsize=size, layout="constrained", squeeze=False)
+    try:
+        yield fig, axes.ravel()
+    finally:
+        plt.close(fig)
+
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "n/a"
+    if isinstance(v, bool) or isinstance(v, np.bool_):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.4g}"
+    return str(v)
+
+
+def _no_data(ax, what: str) -> None:
+    ax.text(0.5, 0.5, f"no {what}", ha="center", va="center", transform=ax.transAxes, color="grey")
+
+
+def _trial_colorbar(fig, axes, norm: Normalize) -> None:
+    sm = plt.cm.ScalarMappable(norm=norm, cmap=_CMAP)
+    cb = fig.colorbar(sm, ax=axes, shrink=0.9, pad=0.01)
+    cb.set_label("trial")
+    cb.locator = MaxNLocator(integer=True)
+    cb.update_ticks()
+
+
+def _plot_map(scenario: Scenario, path: Path, series: list[TrialSeries]) -> str:
+    with _figure(size=(10, 6)) as (fig, (ax,)):
+        for patch in scenario.terrain:
+            ax.add_patch(Circle(patch.center, patch.radius_m, color=_TERRAIN_COLOURS[patch.kind], alpha=0.25, lw=0))
+        handles = [Patch(color=_TERRAIN_COLOURS[k], alpha=0.4, label=k.replace("_", " "))
+                   for k in dict.fromkeys(p.kind for p in scenario.terrain)]
+        driven = [s for s in series if s.x_m.size]
+        for s in driven[1:-1]:  # middle trials faintly, for the spread between first and last
+            ax.plot(s.x_m, s.y_m, color="grey", lw=0.6, alpha=0.4)
+        if len(driven) > 2:
+            handles.append(Line2D([], [], color="grey", lw=0.6, alpha=0.4, label="other trials"))
+        for s, colour in zip(driven[:1] + driven[1:][-1:], ("tab:red", "tab:green")):
+            handles += ax.plot(s.x_m, s.y_m, color=colour, lw=1.2, label=f"driven, trial {s.trial}")
+        handles += ax.plot(path.poses[:, 0], path.poses[:, 1], "k--", lw=1.2, label="taught route")
+        wp = np.asarray(scenario.path.waypoints, dtype=float)
+        handles += ax.plot(wp[:, 0], wp[:, 1], "ks", ms=6, mfc="white", label="waypoints")
+        handles += ax.plot(*path.poses[0, :2], "k^", ms=9, label="start")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.autoscale_view()
+        ax.set(xlabel="x (m)", ylabel="y (m)", title="Top view (world frame)")
+        ax.grid(alpha=0.3)
+        ax.legend(handles=handles, loc="best", fontsize=8, framealpha=0.85)
+        return _png(fig)
+
+
+def _plot_errors(series: list[TrialSeries], lat_lim: float, head_lim_deg: float, norm: Normalize) -> str:
+    with _figure(2, 1, size=(10, 6.5)) as (fig, (ax_l, ax_h)):
+        for ax, attr, scale, lim, label in ((ax_l, "lateral_m", 1.0, lat_lim, "lateral error (m)"),
+                                            (ax_h, "heading_rad", 180 / math.pi, head_lim_deg, "heading error (deg)")):
+            drawn = [s for s in series if s.distance_m.size]
+            for s in drawn:
+                ax.plot(s.distance_m, getattr(s, attr) * scale, color=_CMAP(norm(s.trial)), lw=1)
+            if not drawn:
+                _no_data(ax, "samples")
+            for sign in (1, -1):
+                ax.axhline(sign * lim, color="red", ls="--", lw=1, label="constraint" if sign > 0 else None)
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set(ylabel=label)
+            ax.grid(alpha=0.3)
+            ax.legend(loc="upper right", fontsize=8)
+        ax_h.set_xlabel("distance along route (m)")
+        _trial_colorbar(fig, [ax_l, ax_h], norm)
+        return _png(fig)
+
+
+def _plot_learning(trials: list[dict], lat_lim: float, head_lim_deg: float) -> str:
+    with _figure(1, 2, size=(10, 4)) as (fig, (ax_l, ax_h)):
+        n = [t.get("trial") for t in trials]
+        bad = [i for i, t in enumerate(trials) if (t.get("constraint_violations") or 0) > 0]
+        aborted = [n[i] for i, t in enumerate(trials) if t.get("completed") is False]
+        for ax, key, scale, lim, unit in ((ax_l, "lateral_m", 1.0, lat_lim, "m"),
+                                          (ax_h, "heading_rad", 180 / math.pi, head_lim_deg, "deg")):
+            peak = np.array([(t.get(f"max_{key}") or 0.0) * scale for t in trials])
+            rms = np.array([(t.get(f"rms_{key}") or 0.0) * scale for t in trials])
+            ax.plot(n, peak, "o-", label="max")
+            ax.plot(n, rms, "s-", label="RMS")
+            ax.axhline(lim, color="red", ls="--", lw=1, label="constraint")
+            if bad:
+                ax.plot([n[i] for i in bad], peak[bad], "o", ms=13, mfc="none", mec="red", mew=1.5,
+                        label="violations > 0")
+            for j, x in enumerate(aborted):
+                ax.axvspan(x - 0.4, x + 0.4, color="grey", alpha=0.25, lw=0, label="not completed" if j == 0 else None)
+            if not trials:
+                _no_data(ax, "trials")
+            ax.set(xlabel="trial", ylabel=f"{key.split('_')[0]} error ({unit})", ylim=(0, None))
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        return _png(fig)
+
+
+def _plot_speed(series: list[TrialSeries], norm: Normalize) -> str:
+    with _figure(size=(10, 4)) as (fig, (ax,)):
+        for s in series:
+            c = _CMAP(norm(s.trial))
+            if s.distance_m.size:
+                ax.plot(s.distance_m, s.speed_mps, color=c, lw=0.8, alpha=0.8)
+            if s.cmd_distance_m.size:  # above the truth lines, which are noisier and would hide them
+                ax.plot(s.cmd_distance_m, s.v_cmd_mps, color=c, lw=1.5, ls="--", zorder=3)
+        if not any(s.distance_m.size or s.cmd_distance_m.size for s in series):
+            _no_data(ax, "samples")
+        ax.legend(handles=[Line2D([], [], color="k", label="truth speed"),
+                           Line2D([], [], color="k", lw=1.5, ls="--", label="commanded speed")], fontsize=8)
+        ax.set(xlabel="distance along route (m)", ylabel="speed (m/s)")
+        ax.grid(alpha=0.3)
+        _trial_colorbar(fig, [ax], norm)
+        return _png(fig)
+
+
+def _plot_solve(series: list[TrialSeries], trials: list[dict]) -> str:
+    with _figure(1, 2, size=(10, 3.8)) as (fig, (ax_t, ax_h)):
+        n = [t.get("trial") for t in trials]
+        for key, marker in (("solve_ms_p50", "o-"), ("solve_ms_p99", "s-")):
+            ax_t.plot(n, [t.get(key) or 0.0 for t in trials], marker, label=key.rsplit("_", 1)[1])
+        if not trials:
+            _no_data(ax_t, "trials")
+        ax_t.set(xlabel="trial", ylabel="solve time (ms)", ylim=(0, None))
+        ax_t.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax_t.legend(fontsize=8)
+        ax_t.grid(alpha=0.3)
+        solve = np.concatenate([s.solve_ms for s in series] or [np.empty(0)])
+        solve = solve[np.isfinite(solve)]
+        if solve.size:
+            ax_h.hist(solve, bins=min(50, max(5, solve.size // 20)), color="tab:blue")
+        else:
+            _no_data(ax_h, "solve times")
+        ax_h.set(xlabel="solve time (ms)", ylabel="control steps")
+        ax_h.grid(alpha=0.3)
+        return _png(fig)
+
+
+def _kv_table(rows: dict) -> str:
+    body = "".join(f"<tr><td class=k>{html.escape(str(k))}</td><td>{html.escape(_fmt(v))}</td></tr>"
+                   for k, v in rows.items())
+    return f"<table>{body}</table>"
+
+
+def _trial_table(trials: list[dict]) -> str:
+    keys = list(dict.fromkeys(k for t in trials for k in t))  # union, first-seen order
+    head = "".join(f"<th>{html.escape(str(k))}</th>" for k in keys)
+    rows = []
+    for t in trials:
+        bad = (t.get("constraint_violations") or 0) > 0 or t.get("completed") is False
+        cells = "".join(f"<td>{html.escape(_fmt(t.get(k)))}</td>" for k in keys)
+        rows.append(f"<tr{' class=bad' if bad else ''}>{cells}</tr>")
+    return f"<div style='overflow-x:auto'><table><tr>{head}</tr>{''.join(rows)}</table></div>"
+
+
+def _section(title: str, caption: str, png: str) -> str:
+    return (f"<h2>{html.escape(title)}</h2><p class=cap>{html.escape(caption)}</p>"
+            f"<img alt='{html.escape(title)}' src='data:image/png;base64,{png}'>")
+
+
+def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, series: list[TrialSeries],
+                 summary: dict, run_info: dict) -> None:
+    """Write the experiment report as one self-contained HTML file at `out_path`."""
+    series = sorted(series, key=lambda s: s.trial)
+    trials = sorted(summary.get("trials") or [], key=lambda t: t.get("trial", 0))
+    lat_lim, head_lim = scenario.constraints.lateral_m, scenario.constraints.heading_deg
+    numbers = [s.trial for s in series] + [t["trial"] for t in trials if "trial" in t] or [1]
+    norm = Normalize(min(numbers), max(max(numbers), min(numbers) + 1))  # a span of one trial still maps
+    name = summary.get("scenario") or scenario.name
+    algorithm = summary.get("algorithm") or scenario.controller.algorithm
+    header = {"scenario": name, "algorithm": algorithm, "robot preset": scenario.robot.preset,
+              "robot name": scenario.robot.name, "trials": len(trials) or len(series),
+              "route length (m)": path.length_m, "lateral constraint (m)": lat_lim,
+              "heading constraint (deg)": head_lim}
+    parts = [
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(name)} report</title>"
+        f"<style>{_CSS}</style></head><body><h1>{html.escape(name)}</h1>",
+        _kv_table(header),
+        _section("Map", "Top view, equal aspect, metres: taught route, waypoints, terrain patches (coloured by "
+                 "kind) and the driven truth trajectory of the first and last trial.",
+                 _plot_map(scenario, path, series)),
+        _section("Tracking errors", "Truth lateral error (m, left positive) and heading error (deg) against "
+                 "distance along the taught route (m), one line per trial; red dashes are the ± constraints.",
+                 _plot_errors(series, lat_lim, head_lim, norm)),
+        _section("Learning over trials", "Max and RMS lateral error (m) and heading error (deg) per trial; red "
+                 "rings mark trials with constraint violations, grey bands trials that did not complete.",
+                 _plot_learning(trials, lat_lim, head_lim)),
+        _section("Speed", "Truth speed (solid) and commanded speed (dashed), m/s, against distance along the "
+                 "route (m), coloured by trial.", _plot_speed(series, norm)),
+        _section("Solve time", "Controller solve time per control step (ms): per-trial median and 99th "
+                 "percentile, and the histogram over all trials.", _plot_solve(series, trials)),
+        "<h2>Trials</h2><p class=cap>All summary.json entries per trial; highlighted rows violated a "
+        "constraint or did not complete. Angles in rad, times in s unless named otherwise.</p>",
+        _trial_table(trials),
+        "<h2>Run</h2>", _kv_table(run_info), "</body></html>",
+    ]
+    out = pathlib.Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(parts), encoding="utf-8")
+    log.info("report written to %s", out)

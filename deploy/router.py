@@ -1,0 +1,54 @@
+"""The local Zenoh router: a Python session in `router` mode listening on tcp/127.0.0.1:<port>,
+multicast scouting off (no zenohd is needed). Runs until SIGTERM/SIGINT, then closes cleanly."""
+from __future__ import annotations
+
+import argparse
+import logging
+import socket
+import threading
+
+import zenoh
+
+from common.bus import install_stop_handlers, setup_logging, zenoh_config
+from common.lifecycle import die_with_parent
+
+
+def free_port() -> int:
+    """A currently free TCP port on loopback (for tests and private experiment routers)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def open_router(port: int, host: str = "127.0.0.1") -> zenoh.Session:
+    zenoh.init_log_from_env_or("error")
+    return zenoh.open(zenoh_config("router", listen=[f"tcp/{host}:{port}"]))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="lbc router", description="run the local Zenoh router")
+    parser.add_argument("--port", type=int, default=7447)
+    parser.add_argument("--host", default="127.0.0.1", help="interface to listen on (0.0.0.0 for a fleet)")
+    parser.add_argument("--log-level", default="INFO")
+    args = parser.parse_args(argv)
+    die_with_parent()
+    log = setup_logging("router", args.log_level)
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    try:
+        session = open_router(args.port, args.host)
+    except zenoh.ZError as exc:
+        log.error("cannot listen on tcp/%s:%d: %s", args.host, args.port, exc)
+        return 1
+    log.info("router listening on tcp/%s:%d (zid %s)", args.host, args.port, session.zid())
+    try:
+        stop.wait()
+    finally:
+        session.close()
+        log.info("router stopped")
+        logging.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,5 @@
+import sys
+
+from services.bridge.node import main
+
+sys.exit(main())

@@ -1,0 +1,162 @@
+"""The built-in teach driver: stands in for the operator who drives the route once.
+
+Waypoints become a drivable reference (straight lines joined by circular arcs, as a person drives a
+corner), which a pure-pursuit driver follows on the *simulated* robot, disturbances and all. What the
+robot really drove is what gets taught.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from common import se2
+
+
+def smooth_waypoints(waypoints, corner_radius_m: float, loop: bool, step_m: float = 0.05) -> np.ndarray:
+    """Dense (M, 3) poses along waypoints with every corner replaced by a tangent arc.
+
+    The arc radius is `corner_radius_m`, reduced where the neighbouring legs are too short for it.
+    A loop also rounds the corner at the first waypoint and ends where it started.
+    """
+    pts = np.asarray(waypoints, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 2:
+        raise ValueError("waypoints must be a list of at least two [x, y] pairs")
+    keep = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-6])
+    pts = pts[keep]
+    if loop:
+        if np.hypot(*(pts[-1] - pts[0])) < 1e-6:
+            pts = pts[:-1]
+        if len(pts) < 3:
+            raise ValueError("a loop needs at least three distinct waypoints")
+        corners = list(range(len(pts)))
+        legs = [(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
+    else:
+        corners = list(range(1, len(pts) - 1))
+        legs = [(pts[i], pts[i + 1]) for i in range(len(pts) - 1)]
+    n = len(pts)
+    # per corner: tangent points and arc
+    arcs = {}
+    for c in corners:
+        p_prev, p, p_next = pts[(c - 1) % n], pts[c], pts[(c + 1) % n]
+        d_in = (p - p_prev) / np.linalg.norm(p - p_prev)
+        d_out = (p_next - p) / np.linalg.norm(p_next - p)
+        turn = math.atan2(d_in[0] * d_out[1] - d_in[1] * d_out[0], float(np.dot(d_in, d_out)))
+        if abs(turn) < 1e-6:
+            continue
+        if abs(abs(turn) - math.pi) < 1e-3:
+            raise ValueError(f"waypoint {c} reverses the route; a robot cannot drive a 180 degree cusp")
+        t_max = 0.5 * min(np.linalg.norm(p - p_prev), np.linalg.norm(p_next - p))
+        t = min(corner_radius_m * math.tan(abs(turn) / 2), t_max)
+        radius = t / math.tan(abs(turn) / 2)
+        arcs[c] = (p - t * d_in, p + t * d_out, radius, turn, d_in)
+
+    out: list[np.ndarray] = []
+
+    def add_line(a, b):
+        d = b - a
+        length = float(np.linalg.norm(d))
+        if length < 1e-9:
+            return
+        k = max(1, int(math.ceil(length / step_m)))
+        th = math.atan2(d[1], d[0])
+        for j in range(k):
+            q = a + d * (j / k)
+            out.append(np.array([q[0], q[1], th]))
+
+    def add_arc(arc):
+        start, _end, radius, turn, d_in = arc
+        th0 = math.atan2(d_in[1], d_in[0])
+        sign = 1.0 if turn > 0 else -1.0
+        center = start + sign * radius * np.array([-d_in[1], d_in[0]])
+        length = radius * abs(turn)
+        k = max(1, int(math.ceil(length / step_m)))
+        for j in range(k):
+            a = turn * j / k
+            th = th0 + a
+            q = center + sign * radius * np.array([math.sin(th), -math.cos(th)])
+            out.append(np.array([q[0], q[1], th]))
+
+    if loop:
+        # start mid-way along the first leg so that the loop closes on a straight
+        start_pt = 0.5 * (pts[0] + pts[1])
+        order = list(range(1, n)) + [0]
+        cursor = start_pt
+        for c in order:
+            entry = arcs[c][0] if c in arcs else pts[c]
+            add_line(cursor, entry)
+            if c in arcs:
+                add_arc(arcs[c])
+                cursor = arcs[c][1]
+            else:
+                cursor = pts[c]
+        add_line(cursor, start_pt)
+        out.append(np.array([start_pt[0], start_pt[1], out[0][2]]))
+    else:
+        cursor = pts[0]
+        for c in range(1, n - 1):
+            entry = arcs[c][0] if c in arcs else pts[c]
+            add_line(cursor, entry)
+            if c in arcs:
+                add_arc(arcs[c])
+                cursor = arcs[c][1]
+            else:
+                cursor = pts[c]
+        add_line(cursor, pts[-1])
+        last = out[-1] if out else np.array([*pts[0], 0.0])
+        out.append(np.array([pts[-1][0], pts[-1][1], last[2]]))
+    poses = np.array(out)
+    poses[:, 2] = se2.wrap(poses[:, 2])
+    return poses
+
+
+class PurePursuitDriver:
+    """Drives a dense reference at a set speed and stops at its end."""
+
+    def __init__(self, reference: np.ndarray, speed_mps: float, max_curvature: float = math.inf,
+                 w_max_radps: float = math.inf, stop_decel_mps2: float = 0.3):
+        self.ref = np.asarray(reference, dtype=float)
+        seg = np.hypot(*np.diff(self.ref[:, :2], axis=0).T)
+        self.s = np.concatenate([[0.0], np.cumsum(seg)])
+        self.length = float(self.s[-1])
+        self.speed = speed_mps
+        self.max_curvature = max_curvature
+        self.w_max = w_max_radps
+        self.stop_decel = stop_decel_mps2
+        self.index = 0
+        self.done = False
+
+    @property
+    def start_pose(self) -> np.ndarray:
+        return self.ref[0].copy()
+
+    def command(self, pose) -> tuple[float, float]:
+        x, y, th = pose
+        # advance the progress index within a forward window (the route may cross itself)
+        hi = min(len(self.ref), self.index + 200)
+        d2 = np.sum((self.ref[self.index:hi, :2] - np.array([x, y])) ** 2, axis=1)
+        self.index += int(np.argmin(d2))
+        remaining = self.length - self.s[self.index]
+        # stop once the end is reached or passed
+        end = self.ref[-1]
+        along_end = (x - end[0]) * math.cos(end[2]) + (y - end[1]) * math.sin(end[2])
+        if remaining < 0.05 or (self.index >= len(self.ref) - 2 and along_end >= 0.0):
+            self.done = True
+        if self.done:
+            return 0.0, 0.0
+        v = min(self.speed, math.sqrt(2.0 * self.stop_decel * max(remaining, 0.0)) + 0.05)
+        lookahead = max(0.8, 1.5 * v)
+        target_s = self.s[self.index] + lookahead
+        j = int(np.clip(np.searchsorted(self.s, target_s), 0, len(self.ref) - 1))
+        tx, ty = self.ref[j, 0], self.ref[j, 1]
+        if target_s > self.length:  # extend the last heading beyond the end
+            extra = target_s - self.length
+            tx += extra * math.cos(end[2])
+            ty += extra * math.sin(end[2])
+        alpha = math.atan2(ty - y, tx - x) - th
+        alpha = math.atan2(math.sin(alpha), math.cos(alpha))
+        dist = math.hypot(tx - x, ty - y)
+        curvature = 2.0 * math.sin(alpha) / max(dist, 1e-3)
+        curvature = max(-self.max_curvature, min(self.max_curvature, curvature))
+        w = max(-self.w_max, min(self.w_max, v * curvature))
+        return v, w

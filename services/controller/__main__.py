@@ -1,0 +1,5 @@
+import sys
+
+from services.controller.node import main
+
+sys.exit(main())

@@ -1,0 +1,32 @@
+"""Typed configuration of the controller service."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True, kw_only=True)
+class LimitsConfig:
+    v_max_mps: float
+    w_max_radps: float
+    max_curvature_per_m: float = 0.0   # 0 = no curvature limit (skid-steer); Ackermann: tan(steer_max)/L
+
+
+@dataclass(frozen=True, kw_only=True)
+class FLConfig:
+    gamma1: float = 1.0
+    gamma2: float = 1.8
+    curvature_feedforward: bool = True
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControllerConfig:
+    robot_name: str
+    algorithm: str = "fl"
+    clock_mode: Literal["lockstep", "realtime"] = "lockstep"
+    period_s: float = 0.1
+    loc_timeout_s: float = 0.5
+    stop_decel_mps2: float = 0.4
+    route_timeout_s: float = 5.0
+    limits: LimitsConfig
+    fl: FLConfig = field(default_factory=FLConfig)

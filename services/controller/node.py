@@ -1,0 +1,118 @@
+"""Controller service: the real-time path tracker.
+
+Lockstep: one control step per localization tick, answered with a command carrying that tick.
+Realtime: one step per period on a wall-clock timer with the newest estimate. Either way the step
+works only from what is already in memory (the route is fetched once, when a trial is prepared),
+so the loop never waits on the network.
+"""
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+
+from common import keys
+from common.bus import Node, query_one
+from common.config import ConfigError
+from common.messages import Clock, ControllerStatus, LocState, RouteMsg, VelocityCommand
+from common.path import Path
+from common.service import Control, Service, service_main
+from services.controller.config import ControllerConfig
+from services.controller.fl import FLGains
+from services.controller.tracker import Decision, PathTracker, TrackerLimits
+
+AVAILABLE_ALGORITHMS = ("fl",)
+
+
+class ControllerService(Service):
+    name = "controller"
+
+    def __init__(self, cfg: ControllerConfig, node: Node):
+        if cfg.algorithm not in AVAILABLE_ALGORITHMS:
+            raise ConfigError(f"algorithm {cfg.algorithm!r} is not available in this version "
+                              f"(available: {', '.join(AVAILABLE_ALGORITHMS)})")
+        super().__init__(node)
+        self.cfg = cfg
+        r = cfg.robot_name
+        self.k_cmd, self.k_status = keys.cmd_vel(r), keys.ctrl_status(r)
+        self.tracker: PathTracker | None = None
+        self.trial = 0
+        self.path_id = ""
+        self.latest_loc: LocState | None = None
+        self.clock = node.subscribe_latest(keys.clock(r), Clock)
+        node.subscribe_queue(keys.loc_state(r), LocState, self.inbox)
+        lim = cfg.limits
+        self.limits = TrackerLimits(lim.v_max_mps, lim.w_max_radps,
+                                    lim.max_curvature_per_m if lim.max_curvature_per_m > 0 else math.inf)
+        self.gains = FLGains(cfg.fl.gamma1, cfg.fl.gamma2, cfg.fl.curvature_feedforward)
+
+    # --- control -----------------------------------------------------------------------------
+    def on_control(self, ctl: Control) -> None:
+        req = ctl.request
+        if req.action == "ping":
+            return self.reply(ctl, True, f"algorithm={self.cfg.algorithm} trial={self.trial}")
+        if req.action == "prepare":
+            self.tracker = None
+            if req.mode != "repeat":
+                return self.reply(ctl, True, "idle during teach")
+            try:
+                msg = query_one(self.node.session, keys.route(req.path_id), RouteMsg,
+                                timeout_s=self.cfg.route_timeout_s)
+                path = Path.from_msg(msg)
+            except (LookupError, ValueError) as exc:
+                return self.reply(ctl, False, f"cannot load route {req.path_id}: {exc}")
+            self.tracker = PathTracker(path, self.gains, self.limits, speed_mps=req.speed_mps,
+                                       loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2)
+            self.trial, self.path_id, self.latest_loc = req.trial, req.path_id, None
+            return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) at {req.speed_mps:.2f} m/s "
+                              f"with {self.cfg.algorithm}")
+        if req.action == "stop":
+            self.tracker = None
+            return self.reply(ctl, True, "idle")
+        if req.action == "start":
+            return self.reply(ctl, True, "")
+        return self.reply(ctl, False, f"unsupported action {req.action}")
+
+    # --- control loop ------------------------------------------------------------------------
+    def on_message(self, key: str, msg: LocState) -> None:
+        if self.tracker is None or msg.trial != self.trial:
+            return
+        self.latest_loc = msg
+        if self.cfg.clock_mode == "lockstep":
+            self._step(now_s=msg.stamp_s, tick=msg.tick, loc=msg)
+
+    def run(self, stop: threading.Event) -> None:
+        if self.cfg.clock_mode == "lockstep":
+            return super().run(stop)
+        next_wall = time.monotonic()
+        while not stop.is_set():
+            next_wall += self.cfg.period_s
+            while (left := next_wall - time.monotonic()) > 0:
+                try:
+                    self.dispatch(*self.inbox.get(timeout=left))
+                except queue.Empty:
+                    break
+            if time.monotonic() - next_wall > 5 * self.cfg.period_s:
+                next_wall = time.monotonic()
+            clock, _ = self.clock.get()
+            if self.tracker is not None and clock is not None:
+                # robot time now: the newest clock tick from the bridge
+                self._step(now_s=clock.stamp_s, tick=clock.tick, loc=self.latest_loc)
+
+    def _step(self, now_s: float, tick: int, loc: LocState | None) -> None:
+        t0 = time.perf_counter()
+        d: Decision = self.tracker.step(now_s, loc)
+        solve_ms = (time.perf_counter() - t0) * 1e3
+        self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
+                                                      v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
+        self.node.publish(self.k_status, ControllerStatus(
+            stamp_s=now_s, tick=tick, trial=self.trial, algorithm=self.cfg.algorithm, state=d.state,
+            reason=d.reason, path_id=self.path_id, vertex=d.vertex, distance_m=d.distance_m,
+            lateral_m=d.lateral_m, heading_rad=d.heading_rad, v_cmd_mps=d.v_mps, w_cmd_radps=d.w_radps,
+            solve_ms=solve_ms, iterations=0, loc_age_s=min(d.loc_age_s, 1e6),
+            rejected_msgs=self.node.decoder.rejected_total))
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main("controller", ControllerConfig, ControllerService, lambda c: c.robot_name, argv)

@@ -1,0 +1,5 @@
+import sys
+
+from services.localizer.node import main
+
+sys.exit(main())

@@ -1,0 +1,25 @@
+"""Typed configuration of the localizer service."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseSourceConfig:
+    noise_m: float = 0.01
+    noise_heading_deg: float = 0.3
+    delay_s: float = 0.0
+    dropout_prob: float = 0.0
+    dropout_s: float = 0.3
+
+
+@dataclass(frozen=True, kw_only=True)
+class LocalizerConfig:
+    robot_name: str
+    source: Literal["pose", "vision"] = "pose"
+    seed: int = 0
+    data_dir: str                    # taught routes live in <data_dir>/routes/<path_id>.route
+    period_s: float = 0.1            # sensor period, to turn delays into ticks
+    vertex_spacing_m: float = 0.25
+    pose: PoseSourceConfig = field(default_factory=PoseSourceConfig)

@@ -1,0 +1,109 @@
+"""The `pose` localization source: simulator truth made to look like a real localizer.
+
+Repeat: the estimate of tick k is the truth of tick k-D (D = delay in ticks) plus Gaussian noise,
+stamped with that capture time, expressed relative to the nearest taught vertex, with its covariance.
+Dropouts (random, seeded) publish no pose at all. Teach: the route is recorded from truth, one vertex
+every `spacing` metres: this source models a localizer whose teach-pass map is exact.
+
+Any source (this one, vision later) is a class with the same three methods; the node does not care.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from common import se2
+from common.messages import LocState, TruthPose
+from common.path import Path, RouteRecorder
+
+
+@dataclass(frozen=True)
+class PoseSourceSettings:
+    noise_m: float = 0.01
+    noise_heading_rad: float = math.radians(0.3)
+    delay_ticks: int = 0
+    dropout_prob: float = 0.0
+    dropout_ticks: int = 3
+    vertex_spacing_m: float = 0.25
+
+
+class PoseSource:
+    name = "pose"
+
+    def __init__(self, settings: PoseSourceSettings, rng: np.random.Generator):
+        self.cfg = settings
+        self.rng = rng
+        self.path: Path | None = None
+        self.recorder: RouteRecorder | None = None
+        self._buffer: deque[TruthPose] = deque()
+        self._hint: int | None = None
+        self._dropout_left = 0
+        self.trial = 0
+
+    # --- modes -------------------------------------------------------------------------------
+    def start_teach(self, trial: int) -> None:
+        self.recorder = RouteRecorder(self.cfg.vertex_spacing_m)
+        self.path = None
+        self.trial = trial
+        self._buffer.clear()
+
+    def finish_teach(self, path_id: str, loop: bool, taught_by: str) -> Path:
+        if self.recorder is None:
+            raise RuntimeError("not teaching")
+        path = self.recorder.finish(path_id, loop=loop, taught_by=taught_by)
+        self.recorder = None
+        return path
+
+    def start_repeat(self, path: Path, trial: int, rng: np.random.Generator) -> None:
+        self.path = path
+        self.recorder = None
+        self.trial = trial
+        self.rng = rng
+        self._buffer.clear()
+        self._hint = 0   # a repeat starts at the beginning of the route
+        self._dropout_left = 0
+
+    # --- per tick ------------------------------------------------------------------------------
+    def on_truth(self, truth: TruthPose, path_id: str) -> LocState:
+        pose = (truth.x_world_m, truth.y_world_m, truth.theta_world_rad)
+        if self.recorder is not None:
+            self.recorder.add(pose)
+            return self._no_pose(truth, path_id, "teach", f"teaching: {len(self.recorder.vertices)} vertices",
+                                 truth.stamp_s, len(self.recorder.vertices) - 1)
+        if self.path is None:
+            return self._no_pose(truth, path_id, "idle", "no route loaded", truth.stamp_s, 0)
+        self._buffer.append(truth)
+        if len(self._buffer) <= self.cfg.delay_ticks:
+            return self._no_pose(truth, path_id, "initializing", "filling the localization delay line",
+                                 truth.stamp_s, self._hint or 0)
+        captured = self._buffer.popleft()
+        if self._dropout_left > 0 or (self.cfg.dropout_prob > 0 and self.rng.random() < self.cfg.dropout_prob):
+            if self._dropout_left == 0:
+                self._dropout_left = self.cfg.dropout_ticks
+            self._dropout_left -= 1
+            return self._no_pose(truth, path_id, "dropout", "no estimate this frame", captured.stamp_s,
+                                 self._hint or 0)
+        noisy = np.array([captured.x_world_m + self.cfg.noise_m * self.rng.standard_normal(),
+                          captured.y_world_m + self.cfg.noise_m * self.rng.standard_normal(),
+                          float(se2.wrap(captured.theta_world_rad
+                                         + self.cfg.noise_heading_rad * self.rng.standard_normal()))])
+        vertex, T_vr = self.path.localize(noisy, self._hint)
+        self._hint = vertex
+        # the noise is isotropic in position, so its covariance is the same in the vertex frame
+        cov = np.diag([self.cfg.noise_m ** 2, self.cfg.noise_m ** 2, self.cfg.noise_heading_rad ** 2])
+        return LocState(stamp_s=truth.stamp_s, capture_stamp_s=captured.stamp_s, tick=truth.tick,
+                        trial=self.trial, path_id=path_id, source="pose", status="ok", reason="",
+                        vertex=vertex, distance_m=float(self.path.s[vertex] + T_vr[0]),
+                        T_vertex_robot=tuple(float(v) for v in T_vr),
+                        cov_T_vertex_robot=tuple(float(v) for v in cov.ravel()), matched_features=None)
+
+    def _no_pose(self, truth: TruthPose, path_id: str, status: str, reason: str, capture_s: float,
+                 vertex: int) -> LocState:
+        distance = float(self.path.s[vertex]) if self.path is not None and vertex < len(self.path) else 0.0
+        return LocState(stamp_s=truth.stamp_s, capture_stamp_s=capture_s, tick=truth.tick, trial=self.trial,
+                        path_id=path_id, source="pose", status=status, reason=reason, vertex=max(vertex, 0),
+                        distance_m=distance, T_vertex_robot=None, cov_T_vertex_robot=None,
+                        matched_features=None)

@@ -1,0 +1,114 @@
+import base64
+import re
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+
+from common.path import Path
+from common.scenario import parse_scenario
+from deploy.metrics import TrialSeries
+from deploy.report import write_report
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+N_IMAGES = 5  # map, tracking errors, learning, speed, solve time
+
+
+def make_scenario():
+    return parse_scenario({
+        "name": "demo_slope", "seed": 1, "robot": {"preset": "husky"},
+        "path": {"waypoints": [[0, 0], [10, 0], [20, 5]]},
+        "terrain": [{"kind": "side_slope", "center": [8, 1], "radius_m": 4, "slope_deg": 10, "downhill_deg": -90}],
+        "trials": {"count": 2},
+    })
+
+
+def make_path():
+    corners = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 5.0]])
+    pts = [corners[0]]
+    for a, b in zip(corners[:-1], corners[1:]):
+        n = int(np.ceil(np.linalg.norm(b - a) / 0.25))
+        pts += list(a + np.linspace(0, 1, n + 1)[1:, None] * (b - a))
+    xy = np.array(pts)
+    d = np.diff(xy, axis=0)
+    theta = np.arctan2(d[:, 1], d[:, 0])
+    return Path("demo", np.column_stack([xy, np.append(theta, theta[-1])]))
+
+
+def make_series(path, trial, gain=0.2, n=300):
+    """Errors shrinking with the trial number, as a learning controller should show."""
+    rng = np.random.default_rng(trial)
+    dist = np.linspace(0, path.length_m, n)
+    lateral = gain / trial * np.sin(dist / 3) + 0.005 * rng.standard_normal(n)
+    heading = 0.5 * gain / trial * np.cos(dist / 3)
+    pose = np.array([path.pose_at(d) for d in dist])
+    x = pose[:, 0] - lateral * np.sin(pose[:, 2])
+    y = pose[:, 1] + lateral * np.cos(pose[:, 2])
+    speed = np.clip(0.5 * np.ones(n) + 0.02 * rng.standard_normal(n), 0, None)
+    return TrialSeries(trial, np.arange(n) * 0.1, x, y, dist, lateral, heading, speed,
+                       cmd_distance_m=dist, v_cmd_mps=np.full(n, 0.5), w_cmd_radps=np.zeros(n),
+                       solve_ms=rng.gamma(4, 0.5, n))
+
+
+def empty_series(trial):
+    e = np.empty(0)
+    return TrialSeries(trial, e, e, e, e, e, e, e, cmd_distance_m=e, v_cmd_mps=e, w_cmd_radps=e, solve_ms=e)
+
+
+def entry(series, completed=True, violations=0):
+    lat, head = series.lateral_m, series.heading_rad
+    return {"trial": series.trial, "completed": completed,
+            "max_lateral_m": float(np.abs(lat).max()) if lat.size else 0.0,
+            "rms_lateral_m": float(np.sqrt(np.mean(lat ** 2))) if lat.size else 0.0,
+            "max_heading_rad": float(np.abs(head).max()) if head.size else 0.0,
+            "rms_heading_rad": float(np.sqrt(np.mean(head ** 2))) if head.size else 0.0,
+            "travel_time_s": 30.0, "mean_speed_mps": 0.5, "constraint_violations": violations,
+            "mean_matched_features": None, "solve_ms_p50": 2.0, "solve_ms_p99": 4.5,
+            "experiences_total": series.trial, "end_reason": "finished" if completed else "<aborted>"}
+
+
+def render(tmp_path, series, entries):
+    out = tmp_path / "sub" / "report.html"
+    summary = {"scenario": "demo_slope", "algorithm": "lb-nmpc", "trials": entries}
+    write_report(out, make_scenario(), make_path(), series, summary,
+                 {"wall_time_s": 12.5, "robot": "husky", "command": "lbc run demo.toml <x>"})
+    return out.read_text(encoding="utf-8")
+
+
+def test_report_contents(tmp_path):
+    path = make_path()
+    series = [make_series(path, 1), make_series(path, 2)]
+    page = render(tmp_path, series, [entry(series[0], violations=3), entry(series[1])])
+    assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
+    assert "demo_slope" in page and "lb-nmpc" in page and "husky" in page
+    images = re.findall(r"data:image/png;base64,([A-Za-z0-9+/=]+)", page)
+    assert len(images) == N_IMAGES
+    assert base64.b64decode(images[0]).startswith(PNG_SIGNATURE)
+    table = page[page.index("<h2>Trials</h2>"):]
+    for trial in (1, 2):
+        assert f"<td>{trial}</td>" in table
+    assert "n/a" in table                       # mean_matched_features None
+    assert "&lt;aborted&gt;" not in table       # both completed here ...
+    assert "lbc run demo.toml &lt;x&gt;" in page  # ... but inserted strings are escaped
+    assert "<script" not in page and "http" not in page
+
+
+@pytest.mark.parametrize("case", ["empty_trial", "single_trial", "all_zero"])
+def test_report_edge_cases(tmp_path, case):
+    path = make_path()
+    if case == "empty_trial":
+        series = [make_series(path, 1), empty_series(2)]
+        entries = [entry(series[0]), entry(series[1], completed=False)]
+    elif case == "single_trial":
+        series = [make_series(path, 1)]
+        entries = [entry(series[0])]
+    else:
+        series = [make_series(path, 1, gain=0.0)]
+        series[0].lateral_m[:] = 0.0
+        entries = [entry(series[0])]
+    before = len(plt.get_fignums())
+    page = render(tmp_path, series, entries)
+    assert len(plt.get_fignums()) == before     # every figure closed
+    assert page.count("data:image/png;base64,") == N_IMAGES
+    for e in entries:
+        assert f"<td>{e['trial']}</td>" in page
