@@ -75,26 +75,26 @@ PRESETS: dict[str, RobotParams] = {
         drive="skid", mass_kg=50.0, wheelbase_m=0.5, track_m=0.55, v_max_mps=1.0, w_max_radps=2.0,
         tau_v_s=0.12, tau_w_s=0.10, accel_max_mps2=1.5, decel_max_mps2=4.0, yaw_accel_max_radps2=6.0,
         turn_efficiency=0.9, turn_loss_per_mps2=0.25, side_slip_s=0.03,
-        slope_slide_mps=0.8, slope_yaw_radps=1.0, noise_v_mps=0.01, noise_w_radps=0.01),
+        slope_slide_mps=0.35, slope_yaw_radps=1.0, noise_v_mps=0.01, noise_w_radps=0.01),
     # 150-160 kg ROC6, six-wheel skid-steer, 1.5 m wheelbase (thesis 3.3, 5.4.1)
     "roc6": RobotParams(
         drive="skid", mass_kg=160.0, wheelbase_m=1.5, track_m=0.9, v_max_mps=1.5, w_max_radps=1.5,
         tau_v_s=0.25, tau_w_s=0.25, accel_max_mps2=1.0, decel_max_mps2=3.0, yaw_accel_max_radps2=3.0,
         turn_efficiency=0.75, turn_loss_per_mps2=0.35, side_slip_s=0.05,
-        slope_slide_mps=0.6, slope_yaw_radps=0.8, noise_v_mps=0.015, noise_w_radps=0.015),
+        slope_slide_mps=0.3, slope_yaw_radps=0.8, noise_v_mps=0.015, noise_w_radps=0.015),
     # 900 kg Clearpath Grizzly, skid-steer (thesis ch. 7), up to 2.0 m/s
     "grizzly": RobotParams(
         drive="skid", mass_kg=900.0, wheelbase_m=1.4, track_m=1.2, v_max_mps=2.5, w_max_radps=1.2,
         tau_v_s=0.45, tau_w_s=0.40, accel_max_mps2=0.8, decel_max_mps2=2.5, yaw_accel_max_radps2=1.5,
         turn_efficiency=0.7, turn_loss_per_mps2=0.3, side_slip_s=0.06,
-        slope_slide_mps=0.5, slope_yaw_radps=0.5, noise_v_mps=0.02, noise_w_radps=0.015),
+        slope_slide_mps=0.25, slope_yaw_radps=0.5, noise_v_mps=0.02, noise_w_radps=0.015),
     # 600 kg MATS/DMRV, Ackermann-steered (thesis 5.4.5), commands converted with eq. 5.27
     "mats": RobotParams(
         drive="ackermann", mass_kg=600.0, wheelbase_m=1.9, track_m=1.4, v_max_mps=2.5, w_max_radps=1.0,
         steer_max_deg=30.0, tau_v_s=0.5, tau_w_s=0.3, accel_max_mps2=0.7, decel_max_mps2=2.5,
         yaw_accel_max_radps2=2.0, steer_rate_max_dps=40.0, tau_steer_s=0.15,
         turn_efficiency=1.0, turn_loss_per_mps2=0.0, side_slip_s=0.03, understeer_s2pm2=0.04,
-        slope_slide_mps=0.4, slope_yaw_radps=0.3, noise_v_mps=0.02, noise_w_radps=0.01),
+        slope_slide_mps=0.2, slope_yaw_radps=0.3, noise_v_mps=0.02, noise_w_radps=0.01),
 }
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from common import se2
 from common.messages import LocState
 from common.path import Path
 from services.controller.fl import FLGains, fl_angular_rate
@@ -51,6 +52,18 @@ class PathTracker:
         """Speed at a vertex: one fixed speed for now; per-vertex schedules plug in here."""
         return self.speed_mps
 
+    def route_errors(self, loc: LocState) -> tuple[float, float, float]:
+        """(along, lateral, heading) errors of an estimate, continuous along the route.
+
+        The vertex frame's axis is the robot's heading when it was taught, which on a slope differs
+        from the route's direction (the robot crabbed). Taking y in the nearest vertex frame would make
+        the lateral error jump at every vertex change, so the lateral error is measured against the
+        route polyline next to that vertex, the heading error against the interpolated taught heading.
+        """
+        T_route_robot = se2.compose(self.path.poses[loc.vertex], loc.T_vertex_robot)
+        pr = self.path.project(T_route_robot, hint=loc.vertex)
+        return loc.T_vertex_robot[0], pr.lateral_m, pr.heading_rad
+
     def step(self, now_s: float, loc: LocState | None) -> Decision:
         if loc is not None and loc.status == "ok":
             self._last_ok = loc
@@ -61,7 +74,7 @@ class PathTracker:
             self._last_cmd = (0.0, 0.0)
             if last is None:
                 return Decision(0.0, 0.0, state, reason, 0, 0.0, 0.0, 0.0, age)
-            x, y, th = last.T_vertex_robot
+            _, y, th = self.route_errors(last)
             return Decision(0.0, 0.0, state, reason, last.vertex, last.distance_m, y, th, age)
 
         if self.finished:
@@ -74,7 +87,7 @@ class PathTracker:
             return stop("stopped", f"localization stale: newest estimate is {age:.2f} s old")
 
         vertex = last.vertex
-        x, y, th = last.T_vertex_robot
+        x, y, th = self.route_errors(last)
         if loc is not last:
             # short dropout: keep the last command, the robot is still within the timeout
             v, w = self._last_cmd

@@ -1,0 +1,86 @@
+"""Teach and repeat with the pure cores of bridge, localizer and controller wired in one process:
+the same code the services run, without the bus, for fast deterministic unit tests."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.messages import TruthPose
+from common.path import Path
+from common.robot import PRESETS, RobotParams
+from services.bridge.simulator import SimSample, Simulator
+from services.bridge.teach_driver import PurePursuitDriver, smooth_waypoints
+from services.controller.fl import FLGains
+from services.controller.tracker import PathTracker, TrackerLimits
+from services.localizer.pose_source import PoseSource, PoseSourceSettings
+
+
+def truth_of(s: SimSample, trial: int) -> TruthPose:
+    return TruthPose(stamp_s=s.stamp_s, tick=s.tick, trial=trial, x_world_m=s.x, y_world_m=s.y,
+                     theta_world_rad=s.theta, v_mps=s.v_ground, w_radps=s.w_ground, lateral_slip_mps=s.v_lateral)
+
+
+@dataclass
+class RepeatResult:
+    lateral_m: np.ndarray
+    heading_rad: np.ndarray
+    finished: bool
+    steps: int
+
+    @property
+    def max_lateral(self) -> float:
+        return float(np.max(np.abs(self.lateral_m)))
+
+
+class ClosedLoop:
+    def __init__(self, waypoints, terrain=(), preset: str | RobotParams = "husky", seed: int = 1,
+                 teach_speed: float = 0.4, loop: bool = False, loc: PoseSourceSettings | None = None):
+        self.robot = PRESETS[preset] if isinstance(preset, str) else preset
+        self.sim = Simulator(self.robot, list(terrain), seed)
+        self.ref = smooth_waypoints(waypoints, 3.0, loop)
+        self.loop = loop
+        self.source = PoseSource(loc or PoseSourceSettings(noise_m=0.0, noise_heading_rad=0.0),
+                                 np.random.default_rng(seed))
+        self.teach_speed = teach_speed
+        self.path: Path | None = None
+
+    def teach(self) -> Path:
+        drv = PurePursuitDriver(self.ref, self.teach_speed, self.robot.max_curvature, self.robot.w_max_radps)
+        self.sim.reset(drv.start_pose, 0)
+        self.source.start_teach(0)
+        s = self.sim.sample()
+        for _ in range(100000):
+            self.source.on_truth(truth_of(s, 0), "route")
+            v, w = drv.command((s.x, s.y, s.theta))
+            if drv.done and abs(s.v_ground) < 1e-3:
+                break
+            self.sim.command(v, w)
+            s = self.sim.step()
+        self.sim.end_trial()
+        self.path = self.source.finish_teach("route", loop=self.loop, taught_by="test")
+        return self.path
+
+    def repeat(self, trial: int, speed: float, gains: FLGains = FLGains(), max_steps: int = 20000) -> RepeatResult:
+        path = self.path
+        self.sim.reset(self.ref[0], trial)
+        self.source.start_repeat(path, trial, np.random.default_rng([trial]))
+        r = self.robot
+        tracker = PathTracker(path, gains, TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature),
+                              speed_mps=speed)
+        s = self.sim.sample()
+        lat, head, hint, finished = [], [], 0, False
+        for n in range(max_steps):
+            d = tracker.step(s.stamp_s, self.source.on_truth(truth_of(s, trial), "route"))
+            pr = path.project((s.x, s.y, s.theta), hint)
+            hint = pr.vertex
+            lat.append(pr.lateral_m)
+            head.append(pr.heading_rad)
+            if d.state == "finished":
+                finished = True
+                if abs(s.v_ground) < 1e-3:
+                    break
+            self.sim.command(d.v_mps, d.w_radps)
+            s = self.sim.step()
+        self.sim.end_trial()
+        return RepeatResult(np.array(lat), np.array(head), finished, n + 1)

@@ -1,0 +1,111 @@
+"""Codec: every message round-trips; malformed, oversized, wrongly typed or non-finite payloads are
+rejected with a reason, counted, and never raise out of a service's decoder."""
+import logging
+import math
+
+import msgpack
+import pytest
+
+from common import messages as m
+from common.codec import Decoder, DecodeError, decode, encode
+
+EXAMPLES = [
+    m.Clock(stamp_s=1.5, tick=15, period_s=0.1, mode="lockstep", trial=2),
+    m.Odometry(stamp_s=1.0, tick=10, v_mps=0.5, w_radps=-0.1, x_odom_m=1.0, y_odom_m=2.0, theta_odom_rad=0.3),
+    m.TruthPose(stamp_s=1.0, tick=10, trial=1, x_world_m=1.0, y_world_m=2.0, theta_world_rad=3.0, v_mps=0.5,
+                w_radps=0.1, lateral_slip_mps=0.01),
+    m.LocState(stamp_s=1.0, capture_stamp_s=0.8, tick=10, trial=1, path_id="p1", source="pose", status="ok",
+               reason="", vertex=4, distance_m=1.1, T_vertex_robot=(0.1, -0.02, 0.01),
+               cov_T_vertex_robot=(1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-5), matched_features=None),
+    m.LocState(stamp_s=1.0, capture_stamp_s=0.8, tick=10, trial=1, path_id="p1", source="pose", status="dropout",
+               reason="no estimate", vertex=4, distance_m=1.1, T_vertex_robot=None, cov_T_vertex_robot=None,
+               matched_features=37),
+    m.VelocityCommand(stamp_s=1.0, tick=10, trial=1, v_mps=0.5, w_radps=0.2, source="fl"),
+    m.ControllerStatus(stamp_s=1.0, tick=10, trial=1, algorithm="fl", state="tracking", reason="", path_id="p1",
+                       vertex=3, distance_m=0.9, lateral_m=0.01, heading_rad=0.02, v_cmd_mps=0.5,
+                       w_cmd_radps=0.1, solve_ms=0.05, iterations=0, loc_age_s=0.1, rejected_msgs=0),
+    m.BridgeStatus(stamp_s=1.0, tick=10, trial=1, mode="repeat", running=True, watchdog_tripped=False,
+                   cmd_age_s=0.1, v_cmd_applied_mps=0.5, w_cmd_applied_radps=0.0, rejected_msgs=3),
+    m.TrialEvent(stamp_s=1.0, trial=1, mode="repeat", event="ended", reason="time limit", path_id="p1"),
+    m.ControlRequest(stamp_s=1.0, action="prepare", mode="repeat", trial=1, path_id="p1", speed_mps=0.5,
+                     max_duration_s=100.0, learning=True, loop=False),
+    m.ControlReply(stamp_s=1.0, service="bridge", ok=True, detail="ready"),
+    m.RouteMsg(path_id="p1", loop=False, vertex_spacing_m=0.25, x_m=[0.0, 0.25], y_m=[0.0, 0.0],
+               theta_rad=[0.0, 0.0], taught_by="husky", stamp_s=0.0),
+]
+
+
+def test_every_message_type_has_an_example():
+    assert {type(e) for e in EXAMPLES} == set(m.ALL_MESSAGES)
+
+
+@pytest.mark.parametrize("msg", EXAMPLES, ids=lambda e: type(e).__name__)
+def test_round_trip(msg):
+    data = encode(msg)
+    assert decode(type(msg), data) == msg
+    assert msgpack.unpackb(data)["v"] == type(msg).SCHEMA_VERSION
+
+
+def _tampered(msg, **changes):
+    body = msgpack.unpackb(encode(msg))
+    body.update(changes)
+    return msgpack.packb(body)
+
+
+CLOCK = EXAMPLES[0]
+BAD = {
+    "not msgpack": b"\xc1\xff\x00garbage",
+    "truncated": encode(CLOCK)[:-3],
+    "not a map": msgpack.packb([1, 2, 3]),
+    "wrong version": _tampered(CLOCK, v=99),
+    "no version": msgpack.packb({k: v for k, v in msgpack.unpackb(encode(CLOCK)).items() if k != "v"}),
+    "missing field": msgpack.packb({k: v for k, v in msgpack.unpackb(encode(CLOCK)).items() if k != "tick"}),
+    "unknown field": _tampered(CLOCK, extra=1),
+    "string for float": _tampered(CLOCK, stamp_s="1.0"),
+    "bool for int": _tampered(CLOCK, tick=True),
+    "float for int": _tampered(CLOCK, tick=1.5),
+    "NaN": _tampered(CLOCK, stamp_s=float("nan")),
+    "inf": _tampered(CLOCK, period_s=float("inf")),
+    "bad literal": _tampered(CLOCK, mode="turbo"),
+    "oversized": b"\x00" * (m.Clock.MAX_BYTES + 1),
+}
+
+
+@pytest.mark.parametrize("name", BAD)
+def test_rejects_bad_payloads_with_reason(name):
+    with pytest.raises(DecodeError) as exc:
+        decode(m.Clock, BAD[name])
+    assert str(exc.value)
+
+
+def test_rejects_invalid_nested_values():
+    loc = EXAMPLES[3]
+    with pytest.raises(DecodeError, match="cov_T_vertex_robot"):
+        decode(m.LocState, _tampered(loc, cov_T_vertex_robot=[1.0, 2.0]))
+    with pytest.raises(DecodeError, match="T_vertex_robot"):
+        decode(m.LocState, _tampered(loc, T_vertex_robot=[0.0, float("nan"), 0.0]))
+    with pytest.raises(DecodeError, match="requires T_vertex_robot"):
+        decode(m.LocState, _tampered(loc, T_vertex_robot=None))
+    with pytest.raises(DecodeError, match="path_id"):
+        decode(m.ControlRequest, _tampered(EXAMPLES[9], path_id="../../etc"))
+    with pytest.raises(DecodeError, match="equal lengths"):
+        decode(m.RouteMsg, _tampered(EXAMPLES[-1], y_m=[0.0]))
+
+
+def test_encode_refuses_oversized_message():
+    big = m.RouteMsg(path_id="p", loop=False, vertex_spacing_m=0.25, x_m=[0.0] * 800_000, y_m=[0.0] * 800_000,
+                     theta_rad=[0.0] * 800_000, taught_by="", stamp_s=0.0)
+    with pytest.raises(ValueError, match="limit"):
+        encode(big)
+
+
+def test_decoder_logs_counts_and_never_raises(caplog):
+    dec = Decoder(logging.getLogger("test"), log_every_s=0.0)
+    with caplog.at_level(logging.WARNING):
+        for payload in BAD.values():
+            assert dec(m.Clock, payload, "lbc/r/clock") is None
+    assert dec.rejected["lbc/r/clock"] == len(BAD)
+    assert dec.rejected_total == len(BAD)
+    assert "rejected message on lbc/r/clock" in caplog.text
+    assert dec(m.Clock, encode(CLOCK), "lbc/r/clock") == CLOCK
+    assert math.isclose(CLOCK.stamp_s, 1.5)

@@ -1,0 +1,121 @@
+"""SE(2) identities and the taught-route Path (projection, nearest vertex, relative pose)."""
+import math
+
+import numpy as np
+import pytest
+
+from common import se2
+from common.path import Path, RouteRecorder
+
+rng = np.random.default_rng(0)
+POSES = np.column_stack([rng.uniform(-5, 5, (50, 2)), rng.uniform(-np.pi, np.pi, 50)])
+
+
+def test_inverse_and_identity():
+    I = np.zeros(3)
+    for T in POSES:
+        np.testing.assert_allclose(se2.compose(T, se2.inverse(T)), I, atol=1e-12)
+        np.testing.assert_allclose(se2.compose(se2.inverse(T), T), I, atol=1e-12)
+        np.testing.assert_allclose(se2.compose(T, I), T, atol=1e-12)
+
+
+def test_compose_is_associative_and_matches_matrices():
+    A, B, C = POSES[:3]
+    np.testing.assert_allclose(se2.compose(se2.compose(A, B), C), se2.compose(A, se2.compose(B, C)), atol=1e-12)
+    M = se2.to_matrix(A) @ se2.to_matrix(B)
+    np.testing.assert_allclose(se2.compose(A, B), se2.from_matrix(M), atol=1e-12)
+    # vectorised over stacks equals the loop
+    stacked = se2.compose(POSES[:-1], POSES[1:])
+    for k in range(len(POSES) - 1):
+        np.testing.assert_allclose(stacked[k], se2.compose(POSES[k], POSES[k + 1]), atol=1e-12)
+
+
+def test_between_and_transform_points():
+    A, B = POSES[:2]
+    np.testing.assert_allclose(se2.compose(A, se2.between(A, B)), B, atol=1e-12)
+    p = np.array([1.0, 2.0])
+    np.testing.assert_allclose(se2.transform_points(se2.inverse(A), se2.transform_points(A, p)), p, atol=1e-12)
+
+
+def test_wrap():
+    assert se2.wrap(3 * math.pi) == pytest.approx(-math.pi)
+    np.testing.assert_allclose(se2.wrap(np.array([0.1, 2 * math.pi + 0.1, -2 * math.pi - 0.1])), [0.1, 0.1, -0.1])
+
+
+def test_adjoint_moves_perturbations_between_frames():
+    """T exp(xi) = exp(Ad(T) xi) T to first order."""
+    T = np.array([1.5, -0.7, 0.9])
+    xi = np.array([1e-6, -2e-6, 1.5e-6])
+    right = se2.compose(T, xi)
+    left = se2.compose(se2.adjoint(T) @ xi, T)
+    np.testing.assert_allclose(right, left, atol=1e-11)
+
+
+def straight_then_arc(spacing=0.25, radius=5.0):
+    pts = [(x, 0.0, 0.0) for x in np.arange(0, 10, spacing)]
+    for a in np.arange(0, math.pi / 2, spacing / radius):
+        pts.append((10 + radius * math.sin(a), radius - radius * math.cos(a), a))
+    return Path("arc", np.array(pts), spacing_m=spacing)
+
+
+def test_path_geometry():
+    p = straight_then_arc()
+    assert p.length_m == pytest.approx(10 + 5 * math.pi / 2, abs=0.3)
+    assert abs(p.curvature[10]) < 1e-9
+    assert p.curvature[len(p) - 10] == pytest.approx(1 / 5.0, rel=0.02)
+
+
+def test_projection_on_straight_and_arc():
+    p = straight_then_arc()
+    pr = p.project((4.1, 0.3, 0.1))
+    assert pr.lateral_m == pytest.approx(0.3) and pr.distance_m == pytest.approx(4.1)
+    assert pr.heading_rad == pytest.approx(0.1)
+    # a point 0.2 m outside the arc (to the right of the route) at 30 degrees
+    a = math.radians(30)
+    q = (10 + 5.2 * math.sin(a), 5 - 5.2 * math.cos(a), a)
+    pr = p.project(q)
+    assert pr.lateral_m == pytest.approx(-0.2, abs=2e-3)
+    assert pr.distance_m == pytest.approx(10 + 5 * a, abs=0.02)
+    assert abs(pr.heading_rad) < 0.02
+
+
+def test_relative_pose_is_fig_2_5():
+    p = straight_then_arc()
+    i = p.nearest_vertex((4.1, 0.3))
+    T = p.relative_pose(i, (4.1, 0.3, 0.1))
+    np.testing.assert_allclose(T, [4.1 - p.poses[i, 0], 0.3, 0.1], atol=1e-12)
+    np.testing.assert_allclose(se2.compose(p.poses[i], T), [4.1, 0.3, 0.1], atol=1e-12)
+
+
+def test_windowed_search_agrees_with_kd_tree_and_respects_the_hint():
+    p = straight_then_arc()
+    for q in rng.uniform([0, -1], [15, 6], (200, 2)):
+        i = p.nearest_vertex(q)
+        assert p.nearest_vertex(q, hint=i) == i
+    # a route passing the same place twice: the hint keeps us on the current pass
+    loop = Path("loop", np.array([(5 * math.cos(a), 5 * math.sin(a), a + math.pi / 2)
+                                  for a in np.arange(0, 2 * math.pi, 0.05)] + [(5.0, 0.2, math.pi / 2)]))
+    assert loop.nearest_vertex((5.0, 0.1), hint=len(loop) - 3) >= len(loop) - 3
+    assert loop.nearest_vertex((5.0, 0.1), hint=1) <= 3
+
+
+def test_route_recorder_keyframe_rule():
+    rec = RouteRecorder(0.25)
+    for x in np.arange(0, 2.0, 0.01):
+        rec.add((x, 0.0, 0.0))
+    path = rec.finish("r", loop=False)
+    assert len(path) == 8
+    assert np.allclose(np.diff(path.poses[:, 0]), 0.25, atol=0.011)
+    with pytest.raises(ValueError):
+        RouteRecorder(0.25).finish("r", loop=False)
+
+
+def test_path_rejects_bad_input():
+    with pytest.raises(ValueError):
+        Path("p", np.zeros((1, 3)))
+    with pytest.raises(ValueError):
+        Path("p", np.array([[0, 0, 0], [0, 0, 0.0]]))
+    with pytest.raises(ValueError):
+        Path("bad id!", np.array([[0, 0, 0], [1, 0, 0.0]]))
+    with pytest.raises(ValueError):
+        Path("p", np.array([[0, 0, 0], [1, np.nan, 0.0]]))

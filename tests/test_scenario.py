@@ -1,0 +1,125 @@
+"""Scenario files (a public interface) and the typed service configs made from them."""
+import tomllib
+
+import pytest
+
+from common.config import ConfigError, dump_toml, load_config
+from common.scenario import load_scenario, parse_scenario
+from deploy.configs import service_configs
+from deploy.experiment import check_supported
+
+# The example from DESIGN.md, verbatim: every key in it must be accepted as written.
+DESIGN_EXAMPLE = '''
+name = "husky-sideslope"
+seed = 1
+[robot]
+preset = "husky"                 # husky | roc6 | grizzly | mats
+# optional overrides of any preset parameter, e.g. tau_v_s = 0.3
+[path]
+waypoints = [[0,0],[10,0],[20,6],[30,6]]   # metres, smoothed into the taught route
+loop = false
+[[terrain]]                      # any number of patches
+kind = "side_slope"              # side_slope | slip | rough | rut
+center = [15.0, 2.0]
+radius_m = 5.0
+slope_deg = 12.0                 # side_slope: tilt; downhill direction below
+downhill_deg = 90.0
+# slip: traction = 0.6 ; rough: amplitude ; rut: grows with each pass
+[localization]
+source = "vision"                # vision | pose
+noise_m = 0.02
+delay_s = 0.2
+[controller]
+algorithm = "rc-lb-nmpc"         # fl | ilc | lb-nmpc | mm-lb-nmpc | c-lb-nmpc | rc-lb-nmpc
+horizon = 10
+[constraints]
+lateral_m = 0.3
+heading_deg = 15.0
+[scheduler]
+enabled = true                   # thesis table 5.1 names: gamma1, gamma2, lambda_L, ...
+v_init = 0.5
+v_max = 2.0
+[trials]
+count = 10
+speed = 0.5                      # fixed speed when the scheduler is off
+# speeds = [0.35, 0.45, 0.55]    # optional: one fixed speed per trial (ILC exp. 2)
+learning = true                  # false: the same controller with learning switched off
+'''
+
+
+def test_design_example_is_accepted_as_written():
+    sc = parse_scenario(tomllib.loads(DESIGN_EXAMPLE))
+    assert sc.name == "husky-sideslope" and sc.seed == 1
+    assert sc.robot.preset == "husky" and sc.robot.params.mass_kg == 50.0
+    assert sc.path.waypoints == [(0.0, 0.0), (10.0, 0.0), (20.0, 6.0), (30.0, 6.0)]
+    assert sc.terrain[0].kind == "side_slope" and sc.terrain[0].downhill_deg == 90.0
+    assert sc.localization.source == "vision" and sc.localization.delay_s == 0.2
+    assert sc.controller.algorithm == "rc-lb-nmpc" and sc.controller.horizon == 10
+    assert sc.constraints.heading_deg == 15.0
+    assert sc.scheduler.enabled and sc.scheduler.v_max == 2.0
+    assert sc.trials.count == 10 and sc.trials.learning
+
+
+def test_unavailable_features_are_refused_clearly_not_substituted():
+    sc = parse_scenario(tomllib.loads(DESIGN_EXAMPLE))
+    with pytest.raises(ConfigError, match="not available"):
+        check_supported(sc)
+
+
+def _minimal(**extra):
+    data = {"name": "t", "robot": {"preset": "husky"}, "path": {"waypoints": [[0, 0], [10, 0]]}}
+    data.update(extra)
+    return data
+
+
+@pytest.mark.parametrize("data, match", [
+    (_minimal(colour="red"), r"unknown key\(s\) \['colour'\]"),
+    (_minimal(trials={"count": 2, "sped": 0.5}), r"trials: unknown key"),
+    (_minimal(robot={"preset": "husky", "tau_v": 0.3}), r"robot: unknown key\(s\) \['tau_v'\]"),
+    (_minimal(robot={"preset": "segway"}), r"unknown preset 'segway'"),
+    (_minimal(robot={"preset": "husky", "mass_kg": -1.0}), r"mass_kg must be > 0"),
+    (_minimal(terrain=[{"kind": "slip", "center": [0, 0], "radius_m": 2}]), r"needs 'traction'"),
+    (_minimal(terrain=[{"kind": "slip", "center": [0, 0], "radius_m": 2, "traction": 0.5, "slope_deg": 3}]),
+     r"'slope_deg' does not apply to a slip patch"),
+    (_minimal(terrain=[{"kind": "lava", "center": [0, 0], "radius_m": 2}]), r"terrain\[0\]\.kind"),
+    (_minimal(trials={"count": 3, "speeds": [0.3, 0.4]}), r"speeds has 2 entries"),
+    (_minimal(localization={"noise_m": float("nan")}), r"localization\.noise_m: must be finite"),
+    (_minimal(path={"waypoints": [[0, 0]]}), r"at least 2 points"),
+])
+def test_bad_scenarios_name_the_offending_key(data, match):
+    with pytest.raises(ConfigError, match=match):
+        parse_scenario(data)
+
+
+def test_robot_overrides_apply_to_the_preset():
+    sc = parse_scenario(_minimal(robot={"preset": "grizzly", "name": "g1", "tau_v_s": 0.8}))
+    assert sc.robot.name == "g1" and sc.robot.params.tau_v_s == 0.8 and sc.robot.params.mass_kg == 900.0
+
+
+def test_rut_defaults_and_per_trial_speeds():
+    sc = parse_scenario(_minimal(terrain=[{"kind": "rut", "center": [5, 0], "radius_m": 2}],
+                                 trials={"count": 3, "speeds": [0.35, 0.45, 0.55]}))
+    assert sc.terrain[0].growth_m_per_pass > 0 and sc.terrain[0].depth_m == 0.0
+    assert [sc.trials.speed_of(i) for i in (1, 2, 3)] == [0.35, 0.45, 0.55]
+
+
+def test_examples_load_and_are_runnable():
+    import glob
+    files = sorted(glob.glob("examples/*.toml"))
+    assert files
+    for f in files:
+        check_supported(load_scenario(f))
+
+
+def test_service_configs_round_trip_through_toml(tmp_path):
+    sc = parse_scenario(_minimal(robot={"preset": "mats"},
+                                 terrain=[{"kind": "side_slope", "center": [1, 1], "radius_m": 3, "slope_deg": 5,
+                                           "downhill_deg": 0}]))
+    for name, cfg in service_configs(sc, tmp_path).items():
+        path = tmp_path / f"{name}.toml"
+        path.write_text(dump_toml(cfg))
+        assert load_config(type(cfg), path) == cfg, name
+    bad = tmp_path / "bad.toml"
+    bad.write_text(dump_toml(service_configs(sc, tmp_path)["controller"]) + "\nsurprise = 1\n")
+    with pytest.raises(ConfigError, match="surprise"):
+        load_config(type(service_configs(sc, tmp_path)["controller"]), bad)

@@ -1,0 +1,122 @@
+"""The feedback-linearized tracker (eq. 3.1-3.5) in closed loop with the simulator, and the
+controller core's safety behaviour (stale or lost localization, dropouts, end of route)."""
+import math
+
+import numpy as np
+import pytest
+
+from common.messages import LocState
+from common.path import Path
+from common.scenario import TerrainPatch
+from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.tracker import PathTracker, TrackerLimits
+from services.localizer.pose_source import PoseSourceSettings
+from tests.closed_loop import ClosedLoop
+
+STRAIGHT_THEN_ARC = [[0, 0], [12, 0], [20, 8], [20, 16]]   # 12 m straight, then 3 m-radius arcs
+SLOPE = TerrainPatch(kind="side_slope", center=(8.0, 0.0), radius_m=5.0, slope_deg=12.0, downhill_deg=-90.0)
+
+
+def test_fl_law_is_eq_3_5_in_our_sign_convention():
+    g = FLGains(gamma1=1.0, gamma2=2.0, curvature_feedforward=False)
+    # left of the route (e_L > 0), aligned: turn right
+    assert fl_angular_rate(0.5, 0.1, 0.0, 0.0, g) == pytest.approx(-1.0 * 0.1 / 0.5)
+    # heading left of the route: turn right, -g2 tan(e_H)
+    assert fl_angular_rate(0.5, 0.0, 0.2, 0.0, g) == pytest.approx(-2.0 * math.tan(0.2))
+    # on an arc, on the route: the route's own turn rate v*kappa
+    assert fl_angular_rate(0.5, 0.0, 0.0, 0.2, FLGains()) == pytest.approx(0.1)
+
+
+def test_flat_ground_straight_then_arc_stays_within_5_cm():
+    sim = ClosedLoop(STRAIGHT_THEN_ARC, preset="husky", seed=2)
+    sim.teach()
+    r = sim.repeat(1, speed=0.5)
+    assert r.finished
+    assert r.max_lateral < 0.05
+
+
+def test_side_slope_error_is_clearly_larger_and_repeatable():
+    flat = ClosedLoop(STRAIGHT_THEN_ARC, preset="husky", seed=2)
+    flat.teach()
+    slope = ClosedLoop(STRAIGHT_THEN_ARC, terrain=[SLOPE], preset="husky", seed=2)
+    slope.teach()
+    f = flat.repeat(1, 0.5)
+    s1, s2 = slope.repeat(1, 0.5), slope.repeat(2, 0.5)
+    assert s1.finished and s2.finished
+    assert s1.max_lateral > 0.08 and s1.max_lateral > 3 * f.max_lateral
+    # the same place gives the same error, trial after trial: there is something to learn
+    n = min(len(s1.lateral_m), len(s2.lateral_m))
+    assert abs(s1.max_lateral - s2.max_lateral) < 0.02
+    assert np.corrcoef(s1.lateral_m[:n], s2.lateral_m[:n])[0, 1] > 0.9
+
+
+def test_ackermann_robot_tracks_through_eq_5_27():
+    sim = ClosedLoop([[0, 0], [15, 0], [30, 10], [30, 25]], preset="mats", seed=1)
+    sim.teach()
+    r = sim.repeat(1, speed=1.0)
+    assert r.finished and r.max_lateral < 0.15
+
+
+def test_noisy_delayed_localization_still_tracks():
+    sim = ClosedLoop(STRAIGHT_THEN_ARC, preset="husky", seed=3,
+                     loc=PoseSourceSettings(noise_m=0.01, noise_heading_rad=math.radians(0.3), delay_ticks=2,
+                                            dropout_prob=0.02, dropout_ticks=2))
+    sim.teach()
+    r = sim.repeat(1, 0.5)
+    assert r.finished and r.max_lateral < 0.1
+
+
+# --- safety behaviour of the core, with hand-made estimates ------------------------------------
+PATH = Path("p", np.column_stack([np.arange(0, 10, 0.25), np.zeros(40), np.zeros(40)]))
+LIMITS = TrackerLimits(v_max_mps=1.0, w_max_radps=1.0)
+
+
+def loc(t, x=1.0, y=0.05, status="ok", capture=None):
+    v = PATH.nearest_vertex((x, y))
+    ok = status == "ok"
+    return LocState(stamp_s=t, capture_stamp_s=t if capture is None else capture, tick=int(t * 10), trial=1,
+                    path_id="p", source="pose", status=status, reason="", vertex=v, distance_m=x,
+                    T_vertex_robot=(x - PATH.poses[v, 0], y, 0.0) if ok else None,
+                    cov_T_vertex_robot=(1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-6) if ok else None, matched_features=None)
+
+
+def test_waits_for_first_estimate_then_tracks():
+    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=0.5)
+    d = tr.step(0.0, loc(0.0, status="initializing"))
+    assert d.state == "waiting" and d.v_mps == 0.0
+    d = tr.step(0.1, loc(0.1))
+    assert d.state == "tracking" and d.v_mps == pytest.approx(0.5) and d.w_radps < 0
+
+
+def test_holds_through_short_dropout_and_stops_when_stale():
+    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=0.5, loc_timeout_s=0.5)
+    d0 = tr.step(1.0, loc(1.0))
+    d = tr.step(1.2, loc(1.2, status="dropout"))
+    assert d.state == "holding" and (d.v_mps, d.w_radps) == (d0.v_mps, d0.w_radps)
+    d = tr.step(1.6, loc(1.6, status="dropout"))
+    assert d.state == "stopped" and d.v_mps == 0.0 and "stale" in d.reason
+    d = tr.step(1.7, loc(1.7, x=1.1))
+    assert d.state == "tracking"  # fresh estimates again: carry on
+
+
+def test_delayed_estimate_counts_its_age_from_capture():
+    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=0.5, loc_timeout_s=0.5)
+    d = tr.step(2.0, loc(2.0, capture=1.4))
+    assert d.state == "stopped" and d.loc_age_s == pytest.approx(0.6)
+
+
+def test_stops_at_once_when_lost():
+    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=0.5)
+    tr.step(1.0, loc(1.0))
+    d = tr.step(1.1, loc(1.1, status="lost"))
+    assert d.state == "stopped" and d.v_mps == 0.0 and "lost" in d.reason
+
+
+def test_slows_into_the_end_and_finishes():
+    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=1.0, stop_decel_mps2=0.4)
+    assert tr.step(0.0, loc(0.0, x=2.0, y=0.0)).v_mps == pytest.approx(1.0)
+    near = tr.step(0.1, loc(0.1, x=9.5, y=0.0)).v_mps
+    assert 0.0 < near < 0.6
+    d = tr.step(0.2, loc(0.2, x=PATH.length_m + 0.01, y=0.0))
+    assert d.state == "finished" and d.v_mps == 0.0
+    assert tr.step(0.3, loc(0.3, x=2.0)).state == "finished"   # and stays finished
