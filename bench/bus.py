@@ -29,6 +29,7 @@ import zenoh
 
 from common.bus import AliveWatcher, install_stop_handlers, open_session, setup_logging, zenoh_config
 from common.codec import encode
+from common.lifecycle import PARENT_ENV
 from common.messages import Clock
 
 log = logging.getLogger("bench.bus")
@@ -156,7 +157,9 @@ def summary(name: str, rtts: list[float]) -> dict[str, float]:
 
 
 def spawn(args: list[str]) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", *args], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
+    # LBC_PARENT_PID: the router also exits if this process is killed outright (common.lifecycle)
+    env = dict(os.environ, **{PARENT_ENV: str(os.getpid())})
+    return subprocess.Popen([sys.executable, "-m", *args], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, env=env)
 
 
 def stop_child(proc: subprocess.Popen | None, timeout_s: float = 5.0) -> None:

@@ -20,7 +20,7 @@ import zenoh
 
 from common import keys
 from common.bus import DEFAULT_ENDPOINT, open_session, query_one
-from common.codec import decode, encode
+from common.codec import Decoder, encode
 from common.config import ConfigError
 from common.messages import (ControllerStatus, ControlReply, ControlRequest, LocState, RouteMsg, TrialEvent,
                              TruthPose)
@@ -109,14 +109,19 @@ class Experiment:
         self.events: queue.Queue = queue.Queue()
         self.alive: set[str] = set()
         self.ready_timeout_s = ready_timeout_s
+        self.decoder = Decoder(log)
         r = self.robot
-        self._decls = [
-            session.declare_subscriber(keys.truth(r), lambda s: self.events.put(("truth", s.payload.to_bytes()))),
-            session.declare_subscriber(keys.ctrl_status(r), lambda s: self.events.put(("status", s.payload.to_bytes()))),
-            session.declare_subscriber(keys.loc_state(r), lambda s: self.events.put(("loc", s.payload.to_bytes()))),
-            session.declare_subscriber(keys.trial_event(r), lambda s: self.events.put(("event", s.payload.to_bytes()))),
-            session.liveliness().declare_subscriber(keys.alive_all(r), self._on_alive, history=True),
-        ]
+        self._decls = [session.declare_subscriber(key, self._enqueue(kind, cls, key)) for kind, cls, key in (
+            ("truth", TruthPose, keys.truth(r)), ("status", ControllerStatus, keys.ctrl_status(r)),
+            ("loc", LocState, keys.loc_state(r)), ("event", TrialEvent, keys.trial_event(r)))]
+        self._decls.append(session.liveliness().declare_subscriber(keys.alive_all(r), self._on_alive, history=True))
+
+    def _enqueue(self, kind: str, cls: type, key: str):
+        def on_sample(sample) -> None:
+            msg = self.decoder(cls, sample.payload.to_bytes(), key)  # bad payloads: logged, counted, dropped
+            if msg is not None:
+                self.events.put((kind, msg))
+        return on_sample
 
     def close(self) -> None:
         for d in self._decls:
@@ -148,9 +153,7 @@ class Experiment:
         if kind == "alive":
             name, up = data
             (self.alive.add if up else self.alive.discard)(name)
-            return kind, data
-        cls = {"truth": TruthPose, "status": ControllerStatus, "loc": LocState, "event": TrialEvent}[kind]
-        return kind, decode(cls, data)
+        return kind, data
 
     def wait_ready(self) -> None:
         deadline = time.monotonic() + self.ready_timeout_s

@@ -1,0 +1,133 @@
+"""End to end through a real local Zenoh router and real service processes."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import queue
+import signal
+
+import msgpack
+import pytest
+from mcap.reader import make_reader
+
+from common import keys
+from common.codec import decode, encode
+from common.messages import BridgeStatus, ControllerStatus, ControlRequest, TruthPose, VelocityCommand
+from deploy.experiment import run_experiment
+from tests.conftest import SHORT_SCENARIO, wait_until
+
+pytestmark = pytest.mark.integration
+
+SUMMARY_KEYS = {"trial", "completed", "max_lateral_m", "rms_lateral_m", "max_heading_rad", "rms_heading_rad",
+                "travel_time_s", "mean_speed_mps", "constraint_violations", "mean_matched_features",
+                "solve_ms_p50", "solve_ms_p99", "experiences_total"}
+
+
+def test_experiment_with_two_trials_writes_its_outputs(tmp_path, scenario_file):
+    out = tmp_path / "out"
+    summary = run_experiment(scenario_file(), out, progress_stream=open(os.devnull, "w"))
+    on_disk = json.loads((out / "summary.json").read_text())
+    assert on_disk == json.loads(json.dumps(summary))
+    assert on_disk["scenario"] == "itest" and on_disk["algorithm"] == "fl"
+    assert [t["trial"] for t in on_disk["trials"]] == [1, 2]
+    for t in on_disk["trials"]:
+        assert SUMMARY_KEYS <= set(t)
+        assert t["completed"] is True
+        assert 0.0 < t["max_lateral_m"] < 0.1 and 0.0 < t["rms_lateral_m"] <= t["max_lateral_m"]
+        assert t["travel_time_s"] > 0 and 0.5 < t["mean_speed_mps"] <= 0.85
+        assert t["constraint_violations"] == 0 and t["mean_matched_features"] is None
+        assert t["solve_ms_p99"] >= t["solve_ms_p50"] > 0
+    assert "itest" in (out / "report.html").read_text()
+    # the recording is a finished, indexed MCAP holding every kind of bus message
+    with open(out / "run.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        stats = reader.get_summary().statistics
+        topics = {c.topic for c in reader.get_summary().channels.values()}
+        assert stats.message_count > 1000
+        for key in (keys.truth("r1"), keys.cmd_vel("r1"), keys.loc_state("r1"), keys.ctrl_status("r1"),
+                    keys.odom("r1"), keys.clock("r1"), keys.trial_event("r1"), keys.control("r1", "bridge")):
+            assert key in topics, key
+        for _schema, channel, message in reader.iter_messages(topics=[keys.truth("r1")]):
+            assert decode(TruthPose, message.data).trial in (0, 1, 2)
+            break
+
+
+def test_killing_the_controller_mid_trial_stops_the_robot_within_half_a_second(deployment):
+    dep = deployment
+    dep.exp.teach()
+    cmds: queue.Queue = queue.Queue()
+    sub = dep.session.declare_subscriber(keys.cmd_vel("r1"), lambda s: cmds.put(decode(VelocityCommand, s.payload.to_bytes())))
+    statuses: queue.Queue = queue.Queue()
+    sub2 = dep.session.declare_subscriber(keys.bridge_status("r1"), lambda s: statuses.put(decode(BridgeStatus, s.payload.to_bytes())))
+    try:
+        for s in ("localizer", "controller", "bridge"):
+            dep.exp.control(s, "prepare", "repeat", 1, 0.8, 120.0)
+        dep.exp.control("bridge", "start", "repeat", 1)
+        # drive until the robot is well under way
+        t_start, v = None, 0.0
+        while True:
+            kind, msg = dep.exp._next_event(5.0)
+            assert kind is not None, "no bus traffic"
+            if kind == "truth" and msg.trial == 1:
+                t_start = msg.stamp_s if t_start is None else t_start
+                v = msg.v_mps
+                if msg.stamp_s - t_start > 3.0:
+                    break
+        assert v > 0.6
+        dep.launcher.kill("controller", signal.SIGKILL)
+        # after the kill: follow truth until the robot is at rest
+        stopped_at = None
+        while stopped_at is None:
+            kind, msg = dep.exp._next_event(5.0)
+            assert kind is not None, "bridge stopped publishing"
+            if kind == "truth" and msg.trial == 1 and abs(msg.v_mps) < 0.01 and msg.stamp_s > t_start + 3.0:
+                stopped_at = msg.stamp_s
+        last_cmd = None
+        while not cmds.empty():
+            last_cmd = cmds.get()
+        assert last_cmd is not None
+        assert stopped_at - last_cmd.stamp_s <= 0.5 + 1e-6, (stopped_at, last_cmd.stamp_s)
+        seen_trip = False
+        while not statuses.empty():
+            seen_trip |= statuses.get().watchdog_tripped
+        assert seen_trip
+    finally:
+        sub.undeclare()
+        sub2.undeclare()
+
+
+GARBAGE = [b"\xc1\xc1\xc1", b"", msgpack.packb([1, 2, 3]), msgpack.packb({"v": 1, "stamp_s": float("nan")}),
+           b"\x00" * 70_000]
+
+
+def test_malformed_messages_are_rejected_and_logged_while_services_keep_running(deployment):
+    dep = deployment
+    r = "r1"
+    inputs = {  # input key -> services that subscribe to it
+        keys.cmd_vel(r): ["bridge"], keys.loc_state(r): ["bridge", "controller"],
+        keys.truth(r): ["localizer"], keys.clock(r): ["controller"],
+    }
+    for key in inputs:
+        for payload in GARBAGE:
+            dep.session.put(key, payload)
+        # a well-formed message of the wrong type is malformed too
+        dep.session.put(key, encode(ControlRequest(stamp_s=0.0, action="ping", mode="idle", trial=0, path_id="x",
+                                                   speed_mps=0.0, max_duration_s=0.0, learning=False, loop=False)))
+    for key, services in inputs.items():
+        for svc in services:
+            wait_until(lambda: f"rejected message on {key}" in dep.log(svc), 10.0, f"{svc} to reject {key}")
+    # control queryables answer garbage with an error instead of dying
+    for svc in ("bridge", "localizer", "controller"):
+        replies = list(dep.session.get(keys.control(r, svc), payload=b"\x93\x01\x02", timeout=5.0))
+        assert replies and replies[0].err is not None
+        assert b"rejected" in replies[0].err.payload.to_bytes()
+    replies = list(dep.session.get(keys.route("no_such_route"), timeout=5.0))
+    assert replies and replies[0].err is not None
+    # everyone is still alive and still works: teach and a full trial
+    assert {"bridge", "localizer", "controller"} <= dep.exp.alive
+    assert all(c.proc.poll() is None for c in dep.launcher.children)
+    dep.exp.teach()
+    rec = dep.exp.repeat(1, 0.8)
+    assert rec.completed
+    assert max(s.rejected_msgs for s in rec.status) >= len(GARBAGE)
