@@ -5,7 +5,7 @@ nothing below beyond the limits is known to it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal
 
 from common.config import ConfigError
@@ -109,5 +109,3 @@ def robot_from_preset(preset: str, overrides: dict | None = None, where: str = "
     except TypeCheckError as exc:
         raise ConfigError(str(exc)) from None
 
-
-__all__ = ["RobotParams", "PRESETS", "robot_from_preset", "steering_from_unicycle", "replace"]
