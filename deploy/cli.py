@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
 import threading
 
@@ -12,8 +13,13 @@ from common.config import ConfigError
 BENCHES = ("bus",)
 
 
+def _raise_interrupt(_signum, _frame):
+    raise KeyboardInterrupt
+
+
 def _experiment(args) -> int:
     from deploy.experiment import ExperimentError, run_experiment
+    signal.signal(signal.SIGTERM, _raise_interrupt)  # SIGTERM cleans up exactly like Ctrl-C
     try:
         run_experiment(args.scenario, args.out, connect=args.connect, log_level=args.log_level)
     except (ConfigError, ExperimentError) as exc:
