@@ -14,20 +14,20 @@ class ConfigError(ValueError):
     pass
 
 
+def read_toml(path: str | Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+
+
 def load_config(cls: type[C], source: str | Path | dict[str, Any]) -> C:
     """Load `cls` from a TOML file path or an already-parsed dict."""
-    where = "<dict>"
-    if isinstance(source, dict):
-        data = source
-    else:
-        where = str(source)
-        try:
-            with open(source, "rb") as fh:
-                data = tomllib.load(fh)
-        except FileNotFoundError:
-            raise ConfigError(f"{where}: no such file") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{where}: invalid TOML: {exc}") from None
+    where = "<dict>" if isinstance(source, dict) else str(source)
+    data = source if isinstance(source, dict) else read_toml(source)
     try:
         return from_dict(cls, data)
     except TypeCheckError as exc:

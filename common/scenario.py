@@ -2,12 +2,11 @@
 the keys written there are accepted as written; everything else here is an extension."""
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path as FsPath
 from typing import Literal
 
-from common.config import ConfigError
+from common.config import ConfigError, read_toml
 from common.messages import check_name
 from common.robot import RobotParams, robot_from_preset
 from common.typecheck import TypeCheckError, from_dict, to_dict
@@ -215,13 +214,7 @@ def parse_scenario(data: dict, where: str = "<scenario>") -> Scenario:
 
 
 def load_scenario(path: str | FsPath) -> Scenario:
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such scenario file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    data = read_toml(path)
     try:
         return parse_scenario(data, str(path))
     except ConfigError as exc:

@@ -30,10 +30,8 @@ def smooth_waypoints(waypoints, corner_radius_m: float, loop: bool, step_m: floa
         if len(pts) < 3:
             raise ValueError("a loop needs at least three distinct waypoints")
         corners = list(range(len(pts)))
-        legs = [(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
     else:
         corners = list(range(1, len(pts) - 1))
-        legs = [(pts[i], pts[i + 1]) for i in range(len(pts) - 1)]
     n = len(pts)
     # per corner: tangent points and arc
     arcs = {}
@@ -77,34 +75,22 @@ def smooth_waypoints(waypoints, corner_radius_m: float, loop: bool, step_m: floa
             q = center + sign * radius * np.array([math.sin(th), -math.cos(th)])
             out.append(np.array([q[0], q[1], th]))
 
+    def add_corners(cursor, order):
+        for c in order:
+            add_line(cursor, arcs[c][0] if c in arcs else pts[c])
+            if c in arcs:
+                add_arc(arcs[c])
+            cursor = arcs[c][1] if c in arcs else pts[c]
+        return cursor
+
     if loop:
         # start mid-way along the first leg so that the loop closes on a straight
         start_pt = 0.5 * (pts[0] + pts[1])
-        order = list(range(1, n)) + [0]
-        cursor = start_pt
-        for c in order:
-            entry = arcs[c][0] if c in arcs else pts[c]
-            add_line(cursor, entry)
-            if c in arcs:
-                add_arc(arcs[c])
-                cursor = arcs[c][1]
-            else:
-                cursor = pts[c]
-        add_line(cursor, start_pt)
+        add_line(add_corners(start_pt, list(range(1, n)) + [0]), start_pt)
         out.append(np.array([start_pt[0], start_pt[1], out[0][2]]))
     else:
-        cursor = pts[0]
-        for c in range(1, n - 1):
-            entry = arcs[c][0] if c in arcs else pts[c]
-            add_line(cursor, entry)
-            if c in arcs:
-                add_arc(arcs[c])
-                cursor = arcs[c][1]
-            else:
-                cursor = pts[c]
-        add_line(cursor, pts[-1])
-        last = out[-1] if out else np.array([*pts[0], 0.0])
-        out.append(np.array([pts[-1][0], pts[-1][1], last[2]]))
+        add_line(add_corners(pts[0], range(1, n - 1)), pts[-1])
+        out.append(np.array([pts[-1][0], pts[-1][1], out[-1][2] if out else 0.0]))
     poses = np.array(out)
     poses[:, 2] = se2.wrap(poses[:, 2])
     return poses
