@@ -27,7 +27,8 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 _zenoh_log_started = False
 
 
-def zenoh_config(mode: str, *, connect: Iterable[str] = (), listen: Iterable[str] = ()) -> zenoh.Config:
+def zenoh_config(mode: str, *, connect: Iterable[str] = (), listen: Iterable[str] = (),
+                 connect_timeout_ms: int = -1) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -37,18 +38,38 @@ def zenoh_config(mode: str, *, connect: Iterable[str] = (), listen: Iterable[str
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
-        # wait for the router instead of failing at once when it is still starting
-        conf.insert_json5("connect/timeout_ms", "-1")
+        conf.insert_json5("connect/timeout_ms", json.dumps(connect_timeout_ms))
     return conf
 
 
-def open_session(endpoint: str = DEFAULT_ENDPOINT, mode: str = "client") -> zenoh.Session:
+def open_session(endpoint: str = DEFAULT_ENDPOINT, mode: str = "client", stop: threading.Event | None = None,
+                 timeout_s: float | None = None) -> zenoh.Session:
+    """Connect to the router, waiting for it if it is still starting.
+
+    The wait happens in 1 s attempts so that SIGTERM/Ctrl-C (and `stop`) are honoured meanwhile: a
+    single open() with an infinite timeout would block signal handling forever. Raises ConnectionError
+    after `timeout_s` (None: keep trying) or when `stop` is set.
+    """
     global _zenoh_log_started
     if not _zenoh_log_started:
         zenoh.init_log_from_env_or("error")
         _zenoh_log_started = True
     listen = ["tcp/127.0.0.1:0"] if mode == "peer" else []
-    return zenoh.open(zenoh_config(mode, connect=[endpoint], listen=listen))
+    last_error = None
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    warned = False
+    while True:
+        if stop is not None and stop.is_set():
+            raise ConnectionError(f"stopped while connecting to {endpoint}")
+        try:
+            return zenoh.open(zenoh_config(mode, connect=[endpoint], listen=listen, connect_timeout_ms=1000))
+        except zenoh.ZError as exc:
+            last_error = str(exc)
+        if deadline is not None and time.monotonic() > deadline:
+            raise ConnectionError(f"no Zenoh router at {endpoint} within {timeout_s:.0f} s ({last_error})")
+        if not warned:
+            log.warning("waiting for a Zenoh router at %s ...", endpoint)
+            warned = True
 
 
 class Latest:
@@ -79,12 +100,13 @@ class Reply:
 class Node:
     """One Zenoh client session with typed publish/subscribe/query helpers and a liveliness token."""
 
-    def __init__(self, service: str, robot: str, endpoint: str = DEFAULT_ENDPOINT, logger: logging.Logger | None = None):
+    def __init__(self, service: str, robot: str, endpoint: str = DEFAULT_ENDPOINT, logger: logging.Logger | None = None,
+                 stop: threading.Event | None = None):
         self.service = service
         self.robot = robot
         self.log = logger or logging.getLogger(service)
         self.decoder = Decoder(self.log)
-        self.session = open_session(endpoint)
+        self.session = open_session(endpoint, stop=stop)
         self._decls: list[Any] = []
         self._pubs: dict[str, Any] = {}
         self._token = None
@@ -116,10 +138,14 @@ class Node:
         self.close()
 
     # --- pub/sub ---------------------------------------------------------------------------
-    def publish(self, key: str, msg: Message) -> None:
+    def publish(self, key: str, msg: Message, droppable: bool = False) -> None:
+        """Publish reliably: under congestion wait rather than drop (Zenoh's default is to drop),
+        because commands, estimates, trial events and experiences must not silently vanish.
+        Only streams where the newest sample supersedes the rest (camera frames) are droppable."""
         pub = self._pubs.get(key)
         if pub is None:
-            pub = self._pubs[key] = self.session.declare_publisher(key)
+            cc = zenoh.CongestionControl.DROP if droppable else zenoh.CongestionControl.BLOCK
+            pub = self._pubs[key] = self.session.declare_publisher(key, congestion_control=cc)
             self._decls.append(pub)
         pub.put(encode(msg))
 
@@ -178,6 +204,17 @@ def query_one(session: zenoh.Session, selector: str, cls: type[M], payload: byte
             raise LookupError(f"{selector}: {rep.error}")
         return decode(cls, rep.payload)
     raise LookupError(f"{selector}: no reply within {timeout_s:.1f} s")
+
+
+def query_params(query_obj: zenoh.Query) -> dict[str, str]:
+    """Selector parameters as a dict. Zenoh 1.x separates them with ';'; DESIGN.md and people write
+    'vertex=3&speed=0.5', so both separators are accepted."""
+    out = {}
+    for part in str(query_obj.parameters).replace("&", ";").split(";"):
+        if part:
+            key, _, value = part.partition("=")
+            out[key] = value
+    return out
 
 
 def reply(query_obj: zenoh.Query, key: str, msg: Message) -> None:

@@ -66,12 +66,16 @@ def decode(cls: type[M], data: bytes | bytearray | memoryview) -> M:
 
 
 class Decoder:
-    """Decode-or-reject for services: logs a reason, counts rejections per key, never raises."""
+    """Decode-or-reject for services: logs a reason, counts rejections per key, never raises.
 
-    def __init__(self, logger: logging.Logger, log_every_s: float = 5.0):
+    Logging is limited to `burst` lines per key every `window_s` seconds, so a flood of garbage
+    cannot flood the log; the counters see everything."""
+
+    def __init__(self, logger: logging.Logger, window_s: float = 5.0, burst: int = 10):
         self._log = logger
-        self._log_every_s = log_every_s
-        self._last_log: dict[str, float] = {}
+        self._window_s = window_s
+        self._burst = burst
+        self._windows: dict[str, tuple[float, int]] = {}
         self.rejected: Counter[str] = Counter()
 
     @property
@@ -84,7 +88,13 @@ class Decoder:
         except DecodeError as exc:
             self.rejected[key] += 1
             now = time.monotonic()
-            if now - self._last_log.get(key, -1e9) >= self._log_every_s:
-                self._last_log[key] = now
+            start, logged = self._windows.get(key, (now, 0))
+            if now - start >= self._window_s:
+                start, logged = now, 0
+            if logged < self._burst:
                 self._log.warning("rejected message on %s (%d so far): %s", key, self.rejected[key], exc)
+            elif logged == self._burst:
+                self._log.warning("more rejected messages on %s; logging at most %d every %.0f s", key,
+                                  self._burst, self._window_s)
+            self._windows[key] = (start, logged + 1)
             return None

@@ -68,6 +68,42 @@ def route(path_id: str) -> str:
     return f"{ROOT}/paths/{check_name('path_id', path_id)}"
 
 
+def experience(robot: str) -> str:
+    return f"{_robot(robot)}/experience"
+
+
+def experience_ack(robot: str) -> str:
+    return f"{_robot(robot)}/experience/ack"
+
+
+STORE_ROBOT = "fleet"   # the store is shared by every robot: its liveliness/control live under this name
+
+
+def _store(path_id: str, what: str) -> str:
+    chunk = path_id if path_id == "*" else check_name("path_id", path_id)
+    return f"{ROOT}/store/{chunk}/{what}"
+
+
+def store_window(path_id: str) -> str:
+    return _store(path_id, "window")
+
+
+def store_hyper(path_id: str) -> str:
+    return _store(path_id, "hyper")
+
+
+def store_fit(path_id: str) -> str:
+    return _store(path_id, "fit")
+
+
+def store_dump(path_id: str) -> str:
+    return _store(path_id, "dump")
+
+
+def store_stats() -> str:
+    return f"{ROOT}/store/stats"
+
+
 def everything() -> str:
     return f"{ROOT}/**"
 
@@ -76,14 +112,19 @@ def everything() -> str:
 TOPIC_TYPES: dict[str, type] = {
     "clock": m.Clock, "sensors/odom": m.Odometry, "truth/pose": m.TruthPose, "loc/state": m.LocState,
     "cmd/vel": m.VelocityCommand, "ctrl/status": m.ControllerStatus, "bridge/status": m.BridgeStatus,
-    "trial/event": m.TrialEvent,
+    "trial/event": m.TrialEvent, "experience": m.ExperienceBatch, "experience/ack": m.ExperienceAck,
 }
 
 
 def message_type(key: str) -> type | None:
     parts = key.split("/")
+    if len(parts) >= 3 and parts[0] == ROOT and parts[1] == "alive":
+        return m.AliveEvent
     if len(parts) >= 3 and parts[0] == ROOT and parts[1] == "paths":
         return m.RouteMsg
+    if len(parts) == 4 and parts[:2] == [ROOT, "store"]:
+        return {"hyper": m.HyperMsg, "window": m.ExperienceWindow, "fit": m.HyperMsg,
+                "dump": m.ExperienceBatch}.get(parts[3])
     if len(parts) >= 4 and parts[-1] == "control":
         return m.ControlRequest
     if len(parts) >= 5 and parts[-1] == "reply" and parts[-2] == "control":

@@ -72,6 +72,7 @@ class LocState(Message):
     stamp_s: float
     capture_stamp_s: float
     tick: int
+    capture_tick: int
     trial: int
     path_id: str
     source: Literal["pose", "vision"]
@@ -126,6 +127,10 @@ class ControllerStatus(Message):
     iterations: int
     loc_age_s: float
     rejected_msgs: int
+    experiences_sent: int
+    experiences_pending: int
+    window_experiences: int
+    hyper_version: int
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -179,8 +184,8 @@ class ControlRequest(Message):
 
     def __post_init__(self):
         check_name("path_id", self.path_id)
-        if self.speed_mps < 0:
-            raise ValueError("speed_mps must be >= 0")
+        if self.speed_mps < 0 or self.trial < 0:
+            raise ValueError("speed_mps and trial must be >= 0")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -214,7 +219,143 @@ class RouteMsg(Message):
             raise ValueError("vertex_spacing_m must be > 0")
 
 
+@dataclass(frozen=True, kw_only=True)
+class AliveEvent(Message):
+    """A liveliness token appearing or disappearing, as recorded by the experiment runner."""
+    stamp_s: float
+    alive: bool
+
+
+# --- experiences and the store (thesis 5.2.2, 5.3.2) ----------------------------------------------
+A_DIM = 9   # disturbance dependency a_k (eq. 5.15), see services/controller/experience.py
+G_DIM = 3   # disturbance g (eq. 5.17): body-frame x, y and heading residuals of one control period
+
+
+def _check_vector(name: str, values, n: int) -> None:
+    if len(values) != n:
+        raise ValueError(f"{name} must hold {n} values, got {len(values)}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Experience(Message):
+    """One disturbance observation g(a) (eq. 5.17) at route `vertex` under commanded speed `v_cmd_mps`."""
+    stamp_s: float
+    robot: str
+    trial: int
+    path_id: str
+    seq: int
+    vertex: int
+    v_cmd_mps: float
+    a: tuple[float, ...]
+    g: tuple[float, ...]
+
+    def __post_init__(self):
+        check_name("robot", self.robot)
+        check_name("path_id", self.path_id)
+        _check_vector("a", self.a, A_DIM)
+        _check_vector("g", self.g, G_DIM)
+        if self.vertex < 0 or self.seq < 0:
+            raise ValueError("vertex and seq must be >= 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExperienceBatch(Message):
+    """Experiences from one producer (`source`, unique per process run); the store acknowledges each
+    `seq` once it is durably committed, and the producer re-sends what was not acknowledged."""
+    MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
+    stamp_s: float
+    robot: str
+    source: str
+    experiences: list[Experience]
+
+    def __post_init__(self):
+        check_name("source", self.source)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExperienceAck(Message):
+    MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
+    stamp_s: float
+    store: str
+    source: str
+    seqs: list[int]
+    rejected: list[int]
+    reason: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExperienceWindow(Message):
+    """A store's answer to a window query: every experience in the bins of vertices
+    [vertex_lo, vertex_hi] x speed bins [bin_lo, bin_hi]; `a` and `g` are row-major float64."""
+    MAX_BYTES: ClassVar[int] = 16 * 1024 * 1024
+    stamp_s: float
+    path_id: str
+    vertex_lo: int
+    vertex_hi: int
+    bin_lo: int
+    bin_hi: int
+    v_bin_mps: float
+    vertices: list[int]
+    speed_bins: list[int]
+    a_f64: bytes
+    g_f64: bytes
+
+    def __post_init__(self):
+        n = len(self.vertices)
+        if len(self.speed_bins) != n or len(self.a_f64) != 8 * A_DIM * n or len(self.g_f64) != 8 * G_DIM * n:
+            raise ValueError(f"window arrays do not hold {n} experiences of {A_DIM}+{G_DIM} float64")
+        import numpy as np  # local: messages stay importable without numpy-heavy modules
+        if not (np.all(np.isfinite(np.frombuffer(self.a_f64))) and np.all(np.isfinite(np.frombuffer(self.g_f64)))):
+            raise ValueError("window holds non-finite values")
+
+
+@dataclass(frozen=True, kw_only=True)
+class HyperDim(Message):
+    lengthscales: list[float]
+    signal_std: float
+    noise_std: float
+
+    def __post_init__(self):
+        _check_vector("lengthscales", self.lengthscales, A_DIM)
+        if min(self.lengthscales) <= 0 or self.signal_std <= 0 or self.noise_std <= 0:
+            raise ValueError("hyperparameters must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class HyperMsg(Message):
+    """Versioned GP hyperparameters of one route, one entry per output dimension of g."""
+    stamp_s: float
+    path_id: str
+    version: int
+    n_used: int
+    n_total: int
+    fit_s: float
+    lml: list[float]
+    dims: list[HyperDim]
+
+    def __post_init__(self):
+        _check_vector("dims", self.dims, G_DIM)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PathStats(Message):
+    path_id: str
+    retained: int
+    ingested: int
+    bins: int
+    hyper_version: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class StoreStats(Message):
+    stamp_s: float
+    store: str
+    db_path: str
+    paths: list[PathStats]
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     Clock, Odometry, TruthPose, LocState, VelocityCommand, ControllerStatus, BridgeStatus,
-    TrialEvent, ControlRequest, ControlReply, RouteMsg,
+    TrialEvent, ControlRequest, ControlReply, RouteMsg, AliveEvent, Experience, ExperienceBatch, ExperienceAck,
+    ExperienceWindow, HyperDim, HyperMsg, PathStats, StoreStats,
 )

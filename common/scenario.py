@@ -90,12 +90,17 @@ class LocalizationSection:
     delay_s: float = 0.0
     dropout_prob: float = 0.0       # chance per tick that a dropout starts
     dropout_s: float = 0.3          # length of each dropout
+    # teach-pass failures (thesis 5.4.5): [at_m, length_m, lateral_m] stretches of the route where the
+    # estimate is shifted sideways by lateral_m although the robot does not move (every trial alike)
+    jumps: list[tuple[float, float, float]] = field(default_factory=list)
 
     def __post_init__(self):
         if self.noise_m < 0 or self.noise_heading_deg < 0 or self.delay_s < 0 or self.dropout_s < 0:
             raise ValueError("noise, delay and dropout lengths must be >= 0")
         if not 0.0 <= self.dropout_prob <= 1.0:
             raise ValueError("dropout_prob must be in [0, 1]")
+        if any(length <= 0 for _, length, _ in self.jumps):
+            raise ValueError("jumps: each [at_m, length_m, lateral_m] needs length_m > 0")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -136,6 +141,23 @@ class SchedulerSection:
     lambda_db: float = 1.1
     a_max: float = 0.5
     a_min: float = -0.5
+
+
+@dataclass(frozen=True, kw_only=True)
+class StoreSection:
+    """Experience management (thesis 5.3.2, defaults of 5.4.2) and offline GP fitting (5.2.3)."""
+    v_bin_mps: float = 0.25
+    c_bin: int = 4
+    c_vertex: int = 5
+    c_velocity: int = 1
+    fit_restarts: int = 3
+    fit_max_points: int = 1000
+
+    def __post_init__(self):
+        if self.v_bin_mps <= 0 or self.c_bin < 1 or self.c_vertex < 0 or self.c_velocity < 0:
+            raise ValueError("v_bin_mps > 0, c_bin >= 1, c_vertex >= 0, c_velocity >= 0 required")
+        if self.fit_restarts < 1 or self.fit_max_points < 10:
+            raise ValueError("fit_restarts >= 1 and fit_max_points >= 10 required")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -185,11 +207,15 @@ class Scenario:
     controller: ControllerSection = field(default_factory=ControllerSection)
     constraints: ConstraintsSection = field(default_factory=ConstraintsSection)
     scheduler: SchedulerSection = field(default_factory=SchedulerSection)
+    store: StoreSection = field(default_factory=StoreSection)
     trials: TrialsSection = field(default_factory=TrialsSection)
     sim: SimSection = field(default_factory=SimSection)
 
     def __post_init__(self):
         check_name("scenario name", self.name.replace(".", "_"))
+        check_name("robot.name", self.robot.name)
+        if self.seed < 0:
+            raise ValueError("seed must be >= 0")
 
     @property
     def path_id(self) -> str:

@@ -94,8 +94,12 @@ class Service:
             except Exception as exc:  # a bad request must not kill the service
                 self.log.exception("control request failed")
                 item.answer(False, f"{type(exc).__name__}: {exc}", self.name)
-        else:
+            return
+        try:
             self.on_message(key, item)
+        except Exception:  # well-formed but unusable input: log and count it, keep running
+            self.node.decoder.rejected[key] += 1
+            self.log.exception("message on %s could not be handled", key)
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
@@ -126,7 +130,11 @@ def service_main(name: str, config_cls: type[C], build: Callable[[C, Node], Serv
         return 2
     stop = threading.Event()
     install_stop_handlers(stop)
-    node = Node(name, robot_of(cfg), args.connect, log)
+    try:
+        node = Node(name, robot_of(cfg), args.connect, log, stop=stop)
+    except ConnectionError as exc:
+        log.info("%s stopped before connecting: %s", name, exc)
+        return 0
     service = None
     try:
         try:

@@ -6,7 +6,8 @@ from pathlib import Path
 from common.config import dump_toml
 from common.scenario import Scenario
 from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
-from services.controller.config import ControllerConfig, FLConfig, LimitsConfig
+from services.controller.config import ControllerConfig, FLConfig, LimitsConfig, StoreClientConfig
+from services.gp_store.config import BinConfig, FitConfig, StoreConfig
 from services.localizer.config import LocalizerConfig, PoseSourceConfig
 
 
@@ -25,15 +26,23 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         robot_name=robot, source=loc.source, seed=sc.seed, data_dir=str(data_dir), period_s=sc.sim.period_s,
         vertex_spacing_m=sc.path.vertex_spacing_m,
         pose=PoseSourceConfig(noise_m=loc.noise_m, noise_heading_deg=loc.noise_heading_deg, delay_s=loc.delay_s,
-                              dropout_prob=loc.dropout_prob, dropout_s=loc.dropout_s))
+                              dropout_prob=loc.dropout_prob, dropout_s=loc.dropout_s, jumps=list(loc.jumps)))
     ctl = sc.controller
     controller = ControllerConfig(
         robot_name=robot, algorithm=ctl.algorithm, clock_mode=sc.sim.clock, period_s=sc.sim.period_s,
         loc_timeout_s=ctl.loc_timeout_s, stop_decel_mps2=ctl.stop_decel_mps2,
         limits=LimitsConfig(v_max_mps=rp.v_max_mps, w_max_radps=rp.w_max_radps,
                             max_curvature_per_m=rp.max_curvature if rp.drive == "ackermann" else 0.0),
-        fl=FLConfig(gamma1=ctl.fl_gamma1, gamma2=ctl.fl_gamma2, curvature_feedforward=ctl.curvature_feedforward))
-    return {"bridge": bridge, "localizer": localizer, "controller": controller}
+        fl=FLConfig(gamma1=ctl.fl_gamma1, gamma2=ctl.fl_gamma2, curvature_feedforward=ctl.curvature_feedforward),
+        store=StoreClientConfig(v_bin_mps=sc.store.v_bin_mps, c_vertex=sc.store.c_vertex,
+                                c_velocity=sc.store.c_velocity))
+    st = sc.store
+    gp_store = StoreConfig(
+        name="store1", db_path=str(Path(data_dir) / "experiences.db"), paths=["*"],
+        bins=BinConfig(v_bin_mps=st.v_bin_mps, c_bin=st.c_bin, c_vertex=st.c_vertex, c_velocity=st.c_velocity),
+        # the experiment runner asks for a fit after every trial and waits for it: no automatic fits
+        fit=FitConfig(restarts=st.fit_restarts, max_points=st.fit_max_points, seed=sc.seed, auto_after_trial=False))
+    return {"bridge": bridge, "localizer": localizer, "controller": controller, "gp_store": gp_store}
 
 
 def write_service_configs(configs: dict[str, object], directory: str | Path) -> dict[str, Path]:

@@ -15,6 +15,8 @@ import zenoh
 from mcap.writer import Writer
 
 from common import keys
+from common.codec import encode
+from common.messages import AliveEvent
 
 log = logging.getLogger(__name__)
 
@@ -33,9 +35,15 @@ class McapRecorder:
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self._thread.start()
         self._sub = session.declare_subscriber(key, self._on_sample)
+        self._alive = session.liveliness().declare_subscriber(f"{keys.ROOT}/alive/**", self._on_alive, history=True)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        t = time.time_ns()
+        event = AliveEvent(stamp_s=t * 1e-9, alive=sample.kind == zenoh.SampleKind.PUT)
+        self._queue.put((str(sample.key_expr), encode(event), t))
 
     def record(self, key: str, data: bytes) -> None:
         """Add a message that did not travel as a publication (e.g. a control request)."""
@@ -70,10 +78,11 @@ class McapRecorder:
                 log.exception("cannot record message on %s", key)
 
     def close(self) -> None:
-        try:
-            self._sub.undeclare()
-        except Exception:
-            pass
+        for sub in (self._sub, self._alive):
+            try:
+                sub.undeclare()
+            except Exception:
+                pass
         self._queue.put(None)
         self._thread.join(timeout=30)
         try:

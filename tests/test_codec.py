@@ -14,16 +14,17 @@ EXAMPLES = [
     m.Odometry(stamp_s=1.0, tick=10, v_mps=0.5, w_radps=-0.1, x_odom_m=1.0, y_odom_m=2.0, theta_odom_rad=0.3),
     m.TruthPose(stamp_s=1.0, tick=10, trial=1, x_world_m=1.0, y_world_m=2.0, theta_world_rad=3.0, v_mps=0.5,
                 w_radps=0.1, lateral_slip_mps=0.01),
-    m.LocState(stamp_s=1.0, capture_stamp_s=0.8, tick=10, trial=1, path_id="p1", source="pose", status="ok",
+    m.LocState(stamp_s=1.0, capture_stamp_s=0.8, tick=10, capture_tick=8, trial=1, path_id="p1", source="pose", status="ok",
                reason="", vertex=4, distance_m=1.1, T_vertex_robot=(0.1, -0.02, 0.01),
                cov_T_vertex_robot=(1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-5), matched_features=None),
-    m.LocState(stamp_s=1.0, capture_stamp_s=0.8, tick=10, trial=1, path_id="p1", source="pose", status="dropout",
+    m.LocState(stamp_s=1.0, capture_stamp_s=0.8, tick=10, capture_tick=8, trial=1, path_id="p1", source="pose", status="dropout",
                reason="no estimate", vertex=4, distance_m=1.1, T_vertex_robot=None, cov_T_vertex_robot=None,
                matched_features=37),
     m.VelocityCommand(stamp_s=1.0, tick=10, trial=1, v_mps=0.5, w_radps=0.2, source="fl"),
     m.ControllerStatus(stamp_s=1.0, tick=10, trial=1, algorithm="fl", state="tracking", reason="", path_id="p1",
                        vertex=3, distance_m=0.9, lateral_m=0.01, heading_rad=0.02, v_cmd_mps=0.5,
-                       w_cmd_radps=0.1, solve_ms=0.05, iterations=0, loc_age_s=0.1, rejected_msgs=0),
+                       w_cmd_radps=0.1, solve_ms=0.05, iterations=0, loc_age_s=0.1, rejected_msgs=0,
+                       experiences_sent=10, experiences_pending=1, window_experiences=44, hyper_version=2),
     m.BridgeStatus(stamp_s=1.0, tick=10, trial=1, mode="repeat", running=True, watchdog_tripped=False,
                    cmd_age_s=0.1, v_cmd_applied_mps=0.5, w_cmd_applied_radps=0.0, rejected_msgs=3),
     m.TrialEvent(stamp_s=1.0, trial=1, mode="repeat", event="ended", reason="time limit", path_id="p1"),
@@ -32,6 +33,23 @@ EXAMPLES = [
     m.ControlReply(stamp_s=1.0, service="bridge", ok=True, detail="ready"),
     m.RouteMsg(path_id="p1", loop=False, vertex_spacing_m=0.25, x_m=[0.0, 0.25], y_m=[0.0, 0.0],
                theta_rad=[0.0, 0.0], taught_by="husky", stamp_s=0.0),
+]
+EXP = m.Experience(stamp_s=2.0, robot="r1", trial=1, path_id="p1", seq=7, vertex=3, v_cmd_mps=0.5,
+                   a=tuple(0.1 * i for i in range(9)), g=(0.01, -0.002, 0.003))
+HYPER_DIM = m.HyperDim(lengthscales=[1.0] * 9, signal_std=0.01, noise_std=0.001)
+EXAMPLES += [
+    EXP,
+    m.ExperienceBatch(stamp_s=2.0, robot="r1", source="r1-abc", experiences=[EXP, EXP]),
+    m.ExperienceAck(stamp_s=2.0, store="store1", source="r1-abc", seqs=[1, 2, 3], rejected=[4], reason="unknown route"),
+    WINDOW := m.ExperienceWindow(stamp_s=2.0, path_id="p1", vertex_lo=0, vertex_hi=10, bin_lo=1, bin_hi=3,
+                                 v_bin_mps=0.25, vertices=[2], speed_bins=[2], a_f64=bytes(72), g_f64=bytes(24)),
+    HYPER_DIM,
+    m.HyperMsg(stamp_s=2.0, path_id="p1", version=3, n_used=100, n_total=120, fit_s=1.5, lml=[1.0, 2.0, 3.0],
+               dims=[HYPER_DIM] * 3),
+    m.PathStats(path_id="p1", retained=10, ingested=20, bins=5, hyper_version=1),
+    m.AliveEvent(stamp_s=2.0, alive=False),
+    m.StoreStats(stamp_s=2.0, store="store1", db_path="/tmp/x.db",
+                 paths=[m.PathStats(path_id="p1", retained=10, ingested=20, bins=5, hyper_version=1)]),
 ]
 
 
@@ -89,7 +107,19 @@ def test_rejects_invalid_nested_values():
     with pytest.raises(DecodeError, match="path_id"):
         decode(m.ControlRequest, _tampered(EXAMPLES[9], path_id="../../etc"))
     with pytest.raises(DecodeError, match="equal lengths"):
-        decode(m.RouteMsg, _tampered(EXAMPLES[-1], y_m=[0.0]))
+        decode(m.RouteMsg, _tampered(EXAMPLES[11], y_m=[0.0]))
+    # experiences: wrong dimension, non-finite values inside a batch, bad window arrays
+    with pytest.raises(DecodeError, match="a must hold 9 values"):
+        decode(m.Experience, _tampered(EXP, a=[0.0] * 8))
+    bad_batch = msgpack.unpackb(encode(m.ExperienceBatch(stamp_s=0.0, robot="r1", source="s", experiences=[EXP])))
+    bad_batch["experiences"][0]["g"][1] = float("nan")
+    with pytest.raises(DecodeError, match=r"experiences\[0\]\.g\[1\]: must be finite"):
+        decode(m.ExperienceBatch, msgpack.packb(bad_batch))
+    win = WINDOW
+    with pytest.raises(DecodeError, match="do not hold"):
+        decode(m.ExperienceWindow, _tampered(win, a_f64=bytes(8)))
+    with pytest.raises(DecodeError, match="non-finite"):
+        decode(m.ExperienceWindow, _tampered(win, a_f64=b"\x00" * 64 + b"\x00\x00\x00\x00\x00\x00\xf8\x7f"))
 
 
 def test_encode_refuses_oversized_message():
@@ -100,12 +130,13 @@ def test_encode_refuses_oversized_message():
 
 
 def test_decoder_logs_counts_and_never_raises(caplog):
-    dec = Decoder(logging.getLogger("test"), log_every_s=0.0)
+    dec = Decoder(logging.getLogger("test"), window_s=60.0, burst=5)
     with caplog.at_level(logging.WARNING):
         for payload in BAD.values():
             assert dec(m.Clock, payload, "lbc/r/clock") is None
     assert dec.rejected["lbc/r/clock"] == len(BAD)
     assert dec.rejected_total == len(BAD)
-    assert "rejected message on lbc/r/clock" in caplog.text
+    assert caplog.text.count("rejected message on lbc/r/clock") == 5   # a flood does not flood the log
+    assert "logging at most 5" in caplog.text
     assert dec(m.Clock, encode(CLOCK), "lbc/r/clock") == CLOCK
     assert math.isclose(CLOCK.stamp_s, 1.5)

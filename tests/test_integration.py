@@ -9,6 +9,7 @@ import signal
 
 import msgpack
 import pytest
+import zenoh
 from mcap.reader import make_reader
 
 from common import keys
@@ -108,12 +109,14 @@ def test_malformed_messages_are_rejected_and_logged_while_services_keep_running(
         keys.cmd_vel(r): ["bridge"], keys.loc_state(r): ["bridge", "controller"],
         keys.truth(r): ["localizer"], keys.clock(r): ["controller"],
     }
+    block = zenoh.CongestionControl.BLOCK   # the garbage itself must arrive
     for key in inputs:
         for payload in GARBAGE:
-            dep.session.put(key, payload)
+            dep.session.put(key, payload, congestion_control=block)
         # a well-formed message of the wrong type is malformed too
         dep.session.put(key, encode(ControlRequest(stamp_s=0.0, action="ping", mode="idle", trial=0, path_id="x",
-                                                   speed_mps=0.0, max_duration_s=0.0, learning=False, loop=False)))
+                                                   speed_mps=0.0, max_duration_s=0.0, learning=False, loop=False)),
+                        congestion_control=block)
     for key, services in inputs.items():
         for svc in services:
             wait_until(lambda: f"rejected message on {key}" in dep.log(svc), 10.0, f"{svc} to reject {key}")
@@ -131,3 +134,14 @@ def test_malformed_messages_are_rejected_and_logged_while_services_keep_running(
     rec = dep.exp.repeat(1, 0.8)
     assert rec.completed
     assert max(s.rejected_msgs for s in rec.status) >= len(GARBAGE)
+
+
+def test_realtime_clock_runs_at_wall_clock_pace(tmp_path, scenario_file):
+    data = dict(SHORT_SCENARIO, name="rt", path={"waypoints": [[0, 0], [3, 0]], "teach_speed_mps": 0.8},
+                trials={"count": 1, "speed": 0.8}, sim={"clock": "realtime"})
+    out = tmp_path / "rt"
+    summary = run_experiment(scenario_file(data), out, progress_stream=open(os.devnull, "w"))
+    t = summary["trials"][0]
+    assert t["completed"] and t["max_lateral_m"] < 0.05
+    # realtime: a trial takes about as long on the wall clock as in robot time
+    assert 0.7 * t["travel_time_s"] <= t["wall_time_s"] <= 1.5 * t["travel_time_s"] + 1.0

@@ -47,7 +47,7 @@ def test_interrupting_an_experiment_leaves_no_processes_and_a_readable_recording
         wait_until(lambda: (out / "summary.json").exists() and '"trial": 1' in (out / "summary.json").read_text(),
                    60.0, "the first trial to finish")
         kids = children_of(proc.pid)
-        assert len(kids) == 4  # router + three services
+        assert len(kids) == 5  # router + four services
         proc.send_signal(sig)
         assert proc.wait(timeout=30) == 130
     finally:

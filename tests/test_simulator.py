@@ -133,7 +133,8 @@ def test_teach_reference_is_smooth_and_loops_close():
     assert steps.max() < 0.06
     dth = np.abs(np.angle(np.exp(1j * np.diff(ref[:, 2]))))
     assert dth.max() < 0.06 / 3.0 + 1e-6          # curvature never above 1 / corner radius
-    np.testing.assert_allclose(ref[0, :2], [0, 0]) and np.testing.assert_allclose(ref[-1, :2], [30, 6])
+    np.testing.assert_allclose(ref[0, :2], [0, 0])
+    np.testing.assert_allclose(ref[-1, :2], [30, 6])
     loop = smooth_waypoints([[0, 0], [20, 0], [20, 10], [0, 10]], 3.0, loop=True)
     np.testing.assert_allclose(loop[0, :2], loop[-1, :2], atol=1e-9)
     assert np.sum(np.diff(np.unwrap(loop[:, 2]))) == pytest.approx(2 * math.pi, abs=1e-6)

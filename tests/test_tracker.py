@@ -74,7 +74,8 @@ LIMITS = TrackerLimits(v_max_mps=1.0, w_max_radps=1.0)
 def loc(t, x=1.0, y=0.05, status="ok", capture=None):
     v = PATH.nearest_vertex((x, y))
     ok = status == "ok"
-    return LocState(stamp_s=t, capture_stamp_s=t if capture is None else capture, tick=int(t * 10), trial=1,
+    cap = t if capture is None else capture
+    return LocState(stamp_s=t, capture_stamp_s=cap, tick=round(t * 10), capture_tick=round(cap * 10), trial=1,
                     path_id="p", source="pose", status=status, reason="", vertex=v, distance_m=x,
                     T_vertex_robot=(x - PATH.poses[v, 0], y, 0.0) if ok else None,
                     cov_T_vertex_robot=(1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-6) if ok else None, matched_features=None)
@@ -120,3 +121,26 @@ def test_slows_into_the_end_and_finishes():
     d = tr.step(0.2, loc(0.2, x=PATH.length_m + 0.01, y=0.0))
     assert d.state == "finished" and d.v_mps == 0.0
     assert tr.step(0.3, loc(0.3, x=2.0)).state == "finished"   # and stays finished
+
+
+def test_loop_route_is_repeated_once_round_without_jumping_to_its_end():
+    sim = ClosedLoop([[0, 0], [12, 0], [12, 8], [0, 8]], preset="husky", seed=5, loop=True)
+    path = sim.teach()
+    assert path.loop and np.hypot(*(path.poses[0, :2] - path.poses[-1, :2])) < 0.5
+    r = sim.repeat(1, 0.6)
+    assert r.finished and r.max_lateral < 0.06
+    assert r.steps * 0.1 * 0.6 > 0.9 * path.length_m     # drove the whole lap, did not stop at once
+
+
+def test_teach_pass_failure_shifts_the_estimate_not_the_robot():
+    jump = (8.0, 2.0, 0.25)   # 8-10 m along the route, 25 cm sideways
+    sim = ClosedLoop(STRAIGHT_THEN_ARC, preset="husky", seed=2, loc=PoseSourceSettings(noise_m=0.0, noise_heading_rad=0.0,
+                                                                                        jumps=(jump,)))
+    sim.teach()
+    r = sim.repeat(1, 0.5)
+    assert r.finished
+    # the controller chases the phantom offset: the real robot moves about 25 cm the other way there
+    s = np.arange(len(r.lateral_m)) * 0.05
+    inside = (s > 9.0) & (s < 10.0)
+    assert np.min(r.lateral_m[inside]) < -0.15
+    assert np.max(np.abs(r.lateral_m[s < 7.0])) < 0.05

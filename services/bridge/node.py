@@ -73,15 +73,16 @@ class BridgeService(Service):
                 return self.reply(ctl, False, f"trial {self.trial} is still running; stop it first")
             if req.mode == "idle":
                 return self.reply(ctl, False, "prepare needs mode teach or repeat")
-            self.mode, self.trial, self.path_id = req.mode, req.trial, req.path_id
             start = self.reference[0].copy()
+            driver = None
             if req.mode == "teach":
-                self.driver = PurePursuitDriver(self.reference, self.cfg.teach.speed_mps,
-                                                self.cfg.robot.max_curvature, self.cfg.robot.w_max_radps)
+                driver = PurePursuitDriver(self.reference, self.cfg.teach.speed_mps,
+                                           self.cfg.robot.max_curvature, self.cfg.robot.w_max_radps)
             else:
-                self.driver = None
                 start = se2.compose(start, [0.0, self.cfg.start_offset_m, math.radians(self.cfg.start_offset_deg)])
             self.sim.reset(start, req.trial)
+            # all checks passed and the world is reset: only now take on the new trial
+            self.mode, self.trial, self.path_id, self.driver = req.mode, req.trial, req.path_id, driver
             self.sample = self.sim.sample()
             self.latest_cmd = self._applied_cmd = None
             self.latest_loc_tick = -1
@@ -184,12 +185,13 @@ class BridgeService(Service):
         return False
 
     def _end_trial(self, reason: str) -> None:
-        self.running = False
+        mode, self.mode, self.running = self.mode, "idle", False   # a new trial needs a new prepare
         self.sim.end_trial()
         self.sample = self.sim.sample()
-        self.node.publish(self.k_event, TrialEvent(stamp_s=self.sim.t, trial=self.trial, mode=self.mode,
+        self.latest_cmd = self._applied_cmd = None
+        self.node.publish(self.k_event, TrialEvent(stamp_s=self.sim.t, trial=self.trial, mode=mode,
                                                    event="ended", reason=reason, path_id=self.path_id))
-        self.log.info("%s trial %d ended at t=%.2f s: %s", self.mode, self.trial, self.sim.t, reason)
+        self.log.info("%s trial %d ended at t=%.2f s: %s", mode, self.trial, self.sim.t, reason)
 
     def _publish_tick(self) -> None:
         s, r, trial = self.sample, self.node, self.trial

@@ -20,6 +20,18 @@ class FLConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class StoreClientConfig:
+    """Experiences out, local windows and hyperparameters in (thesis 5.3.2 window sizes)."""
+    enabled: bool = True
+    v_bin_mps: float = 0.25
+    c_vertex: int = 5
+    c_velocity: int = 1
+    lookahead_vertices: int = 20
+    resend_after_s: float = 2.0
+    ack_timeout_s: float = 10.0   # at the end of a trial, wait this long for the store's acknowledgements
+
+
+@dataclass(frozen=True, kw_only=True)
 class ControllerConfig:
     robot_name: str
     algorithm: str = "fl"
@@ -30,3 +42,4 @@ class ControllerConfig:
     route_timeout_s: float = 5.0
     limits: LimitsConfig
     fl: FLConfig = field(default_factory=FLConfig)
+    store: StoreClientConfig = field(default_factory=StoreClientConfig)

@@ -18,9 +18,11 @@ from common.config import ConfigError
 from common.messages import Clock, ControllerStatus, LocState, RouteMsg, VelocityCommand
 from common.path import Path
 from common.service import Control, Service, service_main
+from common.store_client import ExperienceOutbox, WindowCache
 from services.controller.config import ControllerConfig
+from services.controller.core import ControllerCore
 from services.controller.fl import FLGains
-from services.controller.tracker import Decision, PathTracker, TrackerLimits
+from services.controller.tracker import PathTracker, TrackerLimits
 
 AVAILABLE_ALGORITHMS = ("fl",)
 
@@ -36,7 +38,8 @@ class ControllerService(Service):
         self.cfg = cfg
         r = cfg.robot_name
         self.k_cmd, self.k_status = keys.cmd_vel(r), keys.ctrl_status(r)
-        self.tracker: PathTracker | None = None
+        self.core: ControllerCore | None = None
+        self.speed_mps = 0.0
         self.trial = 0
         self.path_id = ""
         self.latest_loc: LocState | None = None
@@ -46,6 +49,10 @@ class ControllerService(Service):
         self.limits = TrackerLimits(lim.v_max_mps, lim.w_max_radps,
                                     lim.max_curvature_per_m if lim.max_curvature_per_m > 0 else math.inf)
         self.gains = FLGains(cfg.fl.gamma1, cfg.fl.gamma2, cfg.fl.curvature_feedforward)
+        st = cfg.store
+        self.outbox = ExperienceOutbox(node, r, resend_after_s=st.resend_after_s) if st.enabled else None
+        self.cache = WindowCache(node.session, v_bin_mps=st.v_bin_mps, c_vertex=st.c_vertex,
+                                 c_velocity=st.c_velocity, lookahead_vertices=st.lookahead_vertices) if st.enabled else None
 
     # --- control -----------------------------------------------------------------------------
     def on_control(self, ctl: Control) -> None:
@@ -53,7 +60,7 @@ class ControllerService(Service):
         if req.action == "ping":
             return self.reply(ctl, True, f"algorithm={self.cfg.algorithm} trial={self.trial}")
         if req.action == "prepare":
-            self.tracker = None
+            self.core = None
             if req.mode != "repeat":
                 return self.reply(ctl, True, "idle during teach")
             try:
@@ -62,21 +69,35 @@ class ControllerService(Service):
                 path = Path.from_msg(msg)
             except (LookupError, ValueError) as exc:
                 return self.reply(ctl, False, f"cannot load route {req.path_id}: {exc}")
-            self.tracker = PathTracker(path, self.gains, self.limits, speed_mps=req.speed_mps,
-                                       loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2)
-            self.trial, self.path_id, self.latest_loc = req.trial, req.path_id, None
+            tracker = PathTracker(path, self.gains, self.limits, speed_mps=req.speed_mps,
+                                  loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2)
+            self.core = ControllerCore(path, tracker, self.cfg.period_s)
+            self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
+            if self.cache is not None:
+                self.cache.set_route(req.path_id, len(path))
+                self.cache.set_position(0, req.speed_mps)
             return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) at {req.speed_mps:.2f} m/s "
                               f"with {self.cfg.algorithm}")
         if req.action == "stop":
-            self.tracker = None
-            return self.reply(ctl, True, "idle")
+            self.core = None
+            if self.outbox is None:
+                return self.reply(ctl, True, "idle")
+            # a sync point for the runner: everything this trial produced is stored once we answer
+            ok = self.outbox.wait_acked(self.cfg.store.ack_timeout_s)
+            return self.reply(ctl, True, f"idle; {self.outbox.acked} experiences acknowledged" if ok else
+                              f"idle; {self.outbox.pending} experiences not yet acknowledged by any store")
         if req.action == "start":
             return self.reply(ctl, True, "")
         return self.reply(ctl, False, f"unsupported action {req.action}")
 
     # --- control loop ------------------------------------------------------------------------
     def on_message(self, key: str, msg: LocState) -> None:
-        if self.tracker is None or msg.trial != self.trial:
+        if self.core is None or msg.trial != self.trial:
+            return
+        if msg.path_id != self.path_id or msg.vertex >= len(self.core.path):
+            self.node.decoder.rejected[key] += 1
+            self.log.warning("ignoring an estimate for route %s vertex %d while tracking %s (%d vertices)",
+                             msg.path_id, msg.vertex, self.path_id, len(self.core.path))
             return
         self.latest_loc = msg
         if self.cfg.clock_mode == "lockstep":
@@ -96,14 +117,24 @@ class ControllerService(Service):
             if time.monotonic() - next_wall > 5 * self.cfg.period_s:
                 next_wall = time.monotonic()
             clock, _ = self.clock.get()
-            if self.tracker is not None and clock is not None:
+            if self.core is not None and clock is not None:
                 # robot time now: the newest clock tick from the bridge
                 self._step(now_s=clock.stamp_s, tick=clock.tick, loc=self.latest_loc)
 
     def _step(self, now_s: float, tick: int, loc: LocState | None) -> None:
         t0 = time.perf_counter()
-        d: Decision = self.tracker.step(now_s, loc)
+        d, obs = self.core.step(now_s, tick, loc)
         solve_ms = (time.perf_counter() - t0) * 1e3
+        window_n, hyper_version = 0, 0
+        if self.outbox is not None:
+            if obs is not None:
+                self.outbox.add(stamp_s=obs.stamp_s, trial=self.trial, path_id=self.path_id, vertex=obs.vertex,
+                                v_cmd_mps=obs.v_cmd_mps, a=obs.a, g=obs.g)
+            self.outbox.flush()
+        if self.cache is not None:
+            self.cache.set_position(d.vertex, self.speed_mps)
+            window_n = len(self.cache.local(d.vertex, self.speed_mps).A)
+            hyper_version = self.cache.hyper.version if self.cache.hyper is not None else 0
         self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
                                                       v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
         self.node.publish(self.k_status, ControllerStatus(
@@ -111,7 +142,14 @@ class ControllerService(Service):
             reason=d.reason, path_id=self.path_id, vertex=d.vertex, distance_m=d.distance_m,
             lateral_m=d.lateral_m, heading_rad=d.heading_rad, v_cmd_mps=d.v_mps, w_cmd_radps=d.w_radps,
             solve_ms=solve_ms, iterations=0, loc_age_s=min(d.loc_age_s, 1e6),
-            rejected_msgs=self.node.decoder.rejected_total))
+            rejected_msgs=self.node.decoder.rejected_total,
+            experiences_sent=self.outbox.acked + self.outbox.pending if self.outbox else 0,
+            experiences_pending=self.outbox.pending if self.outbox else 0,
+            window_experiences=window_n, hyper_version=hyper_version))
+
+    def close(self) -> None:
+        if self.cache is not None:
+            self.cache.close()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,6 +12,7 @@ class PoseSourceConfig:
     delay_s: float = 0.0
     dropout_prob: float = 0.0
     dropout_s: float = 0.3
+    jumps: list[tuple[float, float, float]] = field(default_factory=list)   # [at_m, length_m, lateral_m]
 
 
 @dataclass(frozen=True, kw_only=True)

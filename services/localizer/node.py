@@ -30,7 +30,8 @@ def make_source(cfg: LocalizerConfig) -> PoseSource:
     settings = PoseSourceSettings(
         noise_m=p.noise_m, noise_heading_rad=math.radians(p.noise_heading_deg),
         delay_ticks=int(round(p.delay_s / cfg.period_s)), dropout_prob=p.dropout_prob,
-        dropout_ticks=max(1, int(round(p.dropout_s / cfg.period_s))), vertex_spacing_m=cfg.vertex_spacing_m)
+        dropout_ticks=max(1, int(round(p.dropout_s / cfg.period_s))), vertex_spacing_m=cfg.vertex_spacing_m,
+        jumps=tuple(p.jumps))
     return PoseSource(settings, np.random.default_rng([cfg.seed, 2, 0]))
 
 

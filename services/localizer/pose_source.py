@@ -2,8 +2,10 @@
 
 Repeat: the estimate of tick k is the truth of tick k-D (D = delay in ticks) plus Gaussian noise,
 stamped with that capture time, expressed relative to the nearest taught vertex, with its covariance.
-Dropouts (random, seeded) publish no pose at all. Teach: the route is recorded from truth, one vertex
-every `spacing` metres: this source models a localizer whose teach-pass map is exact.
+Dropouts (random, seeded) publish no pose at all. Teach-pass failures (thesis 5.4.5) are stretches of
+the route where the estimate is shifted sideways although the robot is not: a relocalization against
+a bad keyframe, the same in every trial. Teach: the route is recorded from truth, one vertex every
+`spacing` metres: this source models a localizer whose teach-pass map is exact.
 
 Any source (this one, vision later) is a class with the same three methods; the node does not care.
 """
@@ -28,6 +30,7 @@ class PoseSourceSettings:
     dropout_prob: float = 0.0
     dropout_ticks: int = 3
     vertex_spacing_m: float = 0.25
+    jumps: tuple[tuple[float, float, float], ...] = ()   # (at_m, length_m, lateral_m)
 
 
 class PoseSource:
@@ -72,38 +75,42 @@ class PoseSource:
         if self.recorder is not None:
             self.recorder.add(pose)
             return self._no_pose(truth, path_id, "teach", f"teaching: {len(self.recorder.vertices)} vertices",
-                                 truth.stamp_s, len(self.recorder.vertices) - 1)
+                                 truth, len(self.recorder.vertices) - 1)
         if self.path is None:
-            return self._no_pose(truth, path_id, "idle", "no route loaded", truth.stamp_s, 0)
+            return self._no_pose(truth, path_id, "idle", "no route loaded", truth, 0)
         self._buffer.append(truth)
         if len(self._buffer) <= self.cfg.delay_ticks:
             return self._no_pose(truth, path_id, "initializing", "filling the localization delay line",
-                                 truth.stamp_s, self._hint or 0)
+                                 truth, self._hint or 0)
         captured = self._buffer.popleft()
         if self._dropout_left > 0 or (self.cfg.dropout_prob > 0 and self.rng.random() < self.cfg.dropout_prob):
             if self._dropout_left == 0:
                 self._dropout_left = self.cfg.dropout_ticks
             self._dropout_left -= 1
-            return self._no_pose(truth, path_id, "dropout", "no estimate this frame", captured.stamp_s,
-                                 self._hint or 0)
+            return self._no_pose(truth, path_id, "dropout", "no estimate this frame", captured, self._hint or 0)
         noisy = np.array([captured.x_world_m + self.cfg.noise_m * self.rng.standard_normal(),
                           captured.y_world_m + self.cfg.noise_m * self.rng.standard_normal(),
                           float(se2.wrap(captured.theta_world_rad
                                          + self.cfg.noise_heading_rad * self.rng.standard_normal()))])
         vertex, T_vr = self.path.localize(noisy, self._hint)
         self._hint = vertex
+        along = float(self.path.s[vertex] + T_vr[0])
+        for at_m, length_m, lateral_m in self.cfg.jumps:
+            if at_m <= along < at_m + length_m:
+                T_vr = T_vr + np.array([0.0, lateral_m, 0.0])
         # the noise is isotropic in position, so its covariance is the same in the vertex frame
         cov = np.diag([self.cfg.noise_m ** 2, self.cfg.noise_m ** 2, self.cfg.noise_heading_rad ** 2])
         return LocState(stamp_s=truth.stamp_s, capture_stamp_s=captured.stamp_s, tick=truth.tick,
-                        trial=self.trial, path_id=path_id, source="pose", status="ok", reason="",
+                        capture_tick=captured.tick, trial=self.trial, path_id=path_id, source="pose", status="ok", reason="",
                         vertex=vertex, distance_m=float(self.path.s[vertex] + T_vr[0]),
                         T_vertex_robot=tuple(float(v) for v in T_vr),
                         cov_T_vertex_robot=tuple(float(v) for v in cov.ravel()), matched_features=None)
 
-    def _no_pose(self, truth: TruthPose, path_id: str, status: str, reason: str, capture_s: float,
+    def _no_pose(self, truth: TruthPose, path_id: str, status: str, reason: str, captured: TruthPose,
                  vertex: int) -> LocState:
         distance = float(self.path.s[vertex]) if self.path is not None and vertex < len(self.path) else 0.0
-        return LocState(stamp_s=truth.stamp_s, capture_stamp_s=capture_s, tick=truth.tick, trial=self.trial,
+        return LocState(stamp_s=truth.stamp_s, capture_stamp_s=captured.stamp_s, tick=truth.tick,
+                        capture_tick=captured.tick, trial=self.trial,
                         path_id=path_id, source="pose", status=status, reason=reason, vertex=max(vertex, 0),
                         distance_m=distance, T_vertex_robot=None, cov_T_vertex_robot=None,
                         matched_features=None)

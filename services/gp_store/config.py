@@ -1,0 +1,35 @@
+"""Typed configuration of the experience store service."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True, kw_only=True)
+class BinConfig:
+    """Thesis 5.3.2 / 5.4.2 defaults: up to (2*5+1) * (2*1+1) * 4 = 132..180 experiences per window."""
+    v_bin_mps: float = 0.25
+    c_bin: int = 4
+    c_vertex: int = 5
+    c_velocity: int = 1
+
+    def __post_init__(self):
+        if self.v_bin_mps <= 0 or self.c_bin < 1 or self.c_vertex < 0 or self.c_velocity < 0:
+            raise ValueError("v_bin_mps > 0, c_bin >= 1, c_vertex >= 0 and c_velocity >= 0 required")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FitConfig:
+    restarts: int = 3
+    max_points: int = 1000        # fit on a random subsample beyond this many experiences
+    seed: int = 0
+    auto_after_trial: bool = True # fit when a robot ends a repeat on a route with new experiences
+    min_new: int = 50             # ... and at least this many are new since the last fit
+
+
+@dataclass(frozen=True, kw_only=True)
+class StoreConfig:
+    name: str = "store1"
+    db_path: str
+    paths: list[str] = field(default_factory=lambda: ["*"])   # routes served here; split across machines
+    bins: BinConfig = field(default_factory=BinConfig)
+    fit: FitConfig = field(default_factory=FitConfig)

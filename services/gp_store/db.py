@@ -1,0 +1,199 @@
+"""The experience database: an SQLite file in WAL mode with durable (synchronous=FULL) commits.
+
+Experiences are binned by (route, vertex, commanded-speed bin l = floor(v_cmd / v_bin)) and each bin
+keeps only its newest `c_bin` experiences (thesis 5.3.2): constant-size local models, and old
+experiences of a changing world (ruts) are forgotten. Experiences from every robot on a route share
+the bins (fleet learning). `ingest` returns only after the commit, so whatever it reports as stored
+survives a crash. A (source, seq) pair is stored once, ever, so producers may safely re-send.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+import threading
+from dataclasses import dataclass
+from pathlib import Path as FsPath
+
+import numpy as np
+
+from common.messages import A_DIM, G_DIM, Experience
+
+SCHEMA_VERSION = 1
+
+_SCHEMA = f"""
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS experiences (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    path_id TEXT NOT NULL, vertex INTEGER NOT NULL, speed_bin INTEGER NOT NULL,
+    robot TEXT NOT NULL, trial INTEGER NOT NULL, source TEXT NOT NULL, seq INTEGER NOT NULL,
+    stamp_s REAL NOT NULL, v_cmd_mps REAL NOT NULL,
+    a BLOB NOT NULL CHECK (length(a) = {8 * A_DIM}), g BLOB NOT NULL CHECK (length(g) = {8 * G_DIM}));
+-- every (source, seq) ever stored, evicted or not: a late re-send is recognised, never stored twice
+CREATE TABLE IF NOT EXISTS seen (source TEXT NOT NULL, seq INTEGER NOT NULL, PRIMARY KEY (source, seq)) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS bins ON experiences (path_id, vertex, speed_bin, id);
+CREATE TABLE IF NOT EXISTS ingested (path_id TEXT PRIMARY KEY, total INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS hypers (
+    path_id TEXT NOT NULL, version INTEGER NOT NULL, stamp_s REAL NOT NULL, body TEXT NOT NULL,
+    PRIMARY KEY (path_id, version));
+"""
+
+
+@dataclass(frozen=True)
+class BinPolicy:
+    v_bin_mps: float = 0.25
+    c_bin: int = 4
+    c_vertex: int = 5
+    c_velocity: int = 1
+
+    def speed_bin(self, v_cmd_mps: float) -> int:
+        return int(math.floor(v_cmd_mps / self.v_bin_mps))
+
+
+@dataclass(frozen=True)
+class Window:
+    vertex_lo: int
+    vertex_hi: int
+    bin_lo: int
+    bin_hi: int
+    vertices: np.ndarray
+    speed_bins: np.ndarray
+    A: np.ndarray      # (n, A_DIM)
+    G: np.ndarray      # (n, G_DIM)
+
+
+class ExperienceDB:
+    def __init__(self, path: str | FsPath, policy: BinPolicy = BinPolicy()):
+        self.path = FsPath(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.policy = policy
+        # a writer and a reader connection: in WAL mode queries are answered while a batch commits
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=FULL")
+        self._db.executescript(_SCHEMA)
+        self._rlock = threading.Lock()
+        self._rdb = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        row = self._db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
+        if row is None:
+            self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
+        elif int(row[0]) != SCHEMA_VERSION:
+            raise RuntimeError(f"{self.path}: schema version {row[0]}, this store reads {SCHEMA_VERSION}")
+
+    def close(self) -> None:
+        with self._lock, self._rlock:
+            self._rdb.close()
+            self._db.close()
+
+    # --- writing ------------------------------------------------------------------------------
+    def ingest(self, source: str, experiences: list[Experience]) -> list[int]:
+        """Store a batch in one transaction, then evict beyond c_bin in every touched bin.
+        Returns the seqs now durably stored (including ones stored before: re-sends)."""
+        if not experiences:
+            return []
+        p = self.policy
+        rows = [(e.path_id, e.vertex, p.speed_bin(e.v_cmd_mps), e.robot, e.trial, source, e.seq, e.stamp_s,
+                 e.v_cmd_mps, np.asarray(e.a, dtype="<f8").tobytes(), np.asarray(e.g, dtype="<f8").tobytes())
+                for e in experiences]
+        with self._lock:
+            cur = self._db.cursor()
+            cur.execute("BEGIN IMMEDIATE")
+            try:
+                new_per_path: dict[str, int] = {}
+                for r in rows:
+                    cur.execute("INSERT OR IGNORE INTO seen VALUES (?, ?)", (source, r[6]))
+                    if cur.rowcount == 0:
+                        continue  # a re-send of something already stored (and perhaps since evicted)
+                    cur.execute("INSERT INTO experiences (path_id, vertex, speed_bin, robot, trial, source, seq, "
+                                "stamp_s, v_cmd_mps, a, g) VALUES (?,?,?,?,?,?,?,?,?,?,?)", r)
+                    new_per_path[r[0]] = new_per_path.get(r[0], 0) + 1
+                cur.executemany("INSERT INTO ingested VALUES (?, ?) ON CONFLICT(path_id) "
+                                "DO UPDATE SET total = total + excluded.total", list(new_per_path.items()))
+                for path_id, vertex, speed_bin in {(r[0], r[1], r[2]) for r in rows}:
+                    cur.execute("DELETE FROM experiences WHERE path_id=? AND vertex=? AND speed_bin=? AND id NOT IN "
+                                "(SELECT id FROM experiences WHERE path_id=? AND vertex=? AND speed_bin=? "
+                                "ORDER BY id DESC LIMIT ?)", (path_id, vertex, speed_bin, path_id, vertex, speed_bin,
+                                                              p.c_bin))
+                cur.execute("COMMIT")
+            except BaseException:
+                cur.execute("ROLLBACK")
+                raise
+        return [e.seq for e in experiences]
+
+    def save_hyper(self, path_id: str, body: dict, stamp_s: float) -> int:
+        with self._lock:
+            cur = self._db.cursor()
+            cur.execute("BEGIN IMMEDIATE")
+            try:
+                (version,) = cur.execute("SELECT COALESCE(MAX(version), 0) + 1 FROM hypers WHERE path_id=?",
+                                         (path_id,)).fetchone()
+                body = dict(body, version=version)
+                cur.execute("INSERT INTO hypers VALUES (?, ?, ?, ?)", (path_id, version, stamp_s, json.dumps(body)))
+                cur.execute("COMMIT")
+            except BaseException:
+                cur.execute("ROLLBACK")
+                raise
+        return version
+
+    # --- reading ------------------------------------------------------------------------------
+    def window(self, path_id: str, vertex: int, v_cmd_mps: float, c_vertex: int | None = None,
+               c_velocity: int | None = None) -> Window:
+        """The local dataset of eq. 5.3.2: bins of vertices i +- c_vertex and speed bins l +- c_velocity."""
+        p = self.policy
+        cv = p.c_vertex if c_vertex is None else c_vertex
+        cl = p.c_velocity if c_velocity is None else c_velocity
+        l = p.speed_bin(v_cmd_mps)
+        lo, hi, blo, bhi = vertex - cv, vertex + cv, l - cl, l + cl
+        with self._rlock:
+            rows = self._rdb.execute("SELECT vertex, speed_bin, a, g FROM experiences WHERE path_id=? AND vertex "
+                                    "BETWEEN ? AND ? AND speed_bin BETWEEN ? AND ? ORDER BY id",
+                                    (path_id, lo, hi, blo, bhi)).fetchall()
+        return Window(lo, hi, blo, bhi, np.array([r[0] for r in rows], dtype=int),
+                      np.array([r[1] for r in rows], dtype=int), _stack([r[2] for r in rows], A_DIM),
+                      _stack([r[3] for r in rows], G_DIM))
+
+    def all_of(self, path_id: str) -> tuple[np.ndarray, np.ndarray]:
+        """Every retained experience of a route as (A, G), for hyperparameter fitting."""
+        with self._rlock:
+            rows = self._rdb.execute("SELECT a, g FROM experiences WHERE path_id=? ORDER BY id", (path_id,)).fetchall()
+        return _stack([r[0] for r in rows], A_DIM), _stack([r[1] for r in rows], G_DIM)
+
+    def experiences(self, path_id: str, after_id: int = 0, limit: int = 5000) -> list[tuple[int, Experience]]:
+        """Stored experiences with their row ids, in insertion order (for export)."""
+        with self._rlock:
+            rows = self._rdb.execute("SELECT id, robot, trial, path_id, seq, vertex, v_cmd_mps, stamp_s, a, g, source "
+                                    "FROM experiences WHERE path_id=? AND id > ? ORDER BY id LIMIT ?",
+                                    (path_id, after_id, limit)).fetchall()
+        return [(r[0], Experience(stamp_s=r[7], robot=r[1], trial=r[2], path_id=r[3], seq=r[4], vertex=r[5],
+                                  v_cmd_mps=r[6], a=tuple(np.frombuffer(r[8], "<f8").tolist()),
+                                  g=tuple(np.frombuffer(r[9], "<f8").tolist()))) for r in rows]
+
+    def latest_hyper(self, path_id: str) -> dict | None:
+        with self._rlock:
+            row = self._rdb.execute("SELECT body FROM hypers WHERE path_id=? ORDER BY version DESC LIMIT 1",
+                                   (path_id,)).fetchone()
+        return json.loads(row[0]) if row else None
+
+    def stats(self) -> list[dict]:
+        with self._rlock:
+            kept = dict(self._rdb.execute("SELECT path_id, COUNT(*) FROM experiences GROUP BY path_id").fetchall())
+            bins = dict(self._rdb.execute("SELECT path_id, COUNT(*) FROM (SELECT DISTINCT path_id, vertex, speed_bin "
+                                         "FROM experiences) GROUP BY path_id").fetchall())
+            total = dict(self._rdb.execute("SELECT path_id, total FROM ingested").fetchall())
+            hyper = dict(self._rdb.execute("SELECT path_id, MAX(version) FROM hypers GROUP BY path_id").fetchall())
+        paths = sorted(set(kept) | set(total) | set(hyper))
+        return [{"path_id": p, "retained": kept.get(p, 0), "ingested": total.get(p, 0), "bins": bins.get(p, 0),
+                 "hyper_version": hyper.get(p, 0)} for p in paths]
+
+    def max_bin_count(self, path_id: str) -> int:
+        with self._rlock:
+            row = self._rdb.execute("SELECT MAX(n) FROM (SELECT COUNT(*) AS n FROM experiences WHERE path_id=? "
+                                   "GROUP BY vertex, speed_bin)", (path_id,)).fetchone()
+        return row[0] or 0
+
+
+def _stack(blobs: list[bytes], dim: int) -> np.ndarray:
+    if not blobs:
+        return np.zeros((0, dim))
+    return np.frombuffer(b"".join(blobs), dtype="<f8").reshape(-1, dim).copy()

@@ -1,0 +1,110 @@
+"""Experiences (eq. 5.15, 5.17) from estimates and commands, and the store's database core."""
+import math
+
+import numpy as np
+import pytest
+
+from common.messages import Experience
+from common.path import Path
+from services.controller.experience import ExperienceBuilder, body_residual, body_velocity, unicycle_step
+from services.gp_store.db import BinPolicy, ExperienceDB
+
+DT = 0.1
+ROUTE = Path("r", np.column_stack([np.arange(0, 20, 0.25), np.zeros(80), np.zeros(80)]))
+
+
+def drive(builder, v, w, drift_left_mps, steps=30, y0=0.05, th0=0.02):
+    """A robot obeying the unicycle plus a body-frame leftward slide; estimates are exact."""
+    pose = np.array([1.0, y0, th0])
+    out = []
+    for k in range(steps):
+        vertex = ROUTE.nearest_vertex(pose)
+        T = np.array([pose[0] - ROUTE.poses[vertex, 0], pose[1], pose[2]])
+        obs = builder.add_estimate(k, k * DT, vertex, T)
+        if obs is not None:
+            out.append(obs)
+        builder.add_command(k, v, w)
+        nxt = unicycle_step(pose, v, w, DT)
+        nxt[:2] += DT * drift_left_mps * np.array([-math.sin(pose[2]), math.cos(pose[2])])
+        pose = nxt
+    return out
+
+
+def test_nominal_motion_has_zero_disturbance_and_a_holds_eq_5_15():
+    obs = drive(ExperienceBuilder(ROUTE, DT), 0.5, 0.1, 0.0)
+    assert len(obs) == 28
+    for o in obs:
+        np.testing.assert_allclose(o.g, 0.0, atol=1e-12)
+    a = obs[5].a
+    assert a[3] == pytest.approx(0.5) and a[4] == pytest.approx(0.1)   # v_{k-1} from estimates
+    assert a[5:] == (0.5, 0.1, 0.5, 0.1)                               # u_k, u_{k-1}
+    assert a[0] == pytest.approx(1.0 + 0.5 * DT * 6, abs=0.02)        # s along the route
+    assert obs[5].v_cmd_mps == 0.5
+
+
+def test_a_sideways_slide_shows_up_as_a_body_frame_lateral_disturbance():
+    obs = drive(ExperienceBuilder(ROUTE, DT), 0.5, 0.0, 0.08, th0=0.3)
+    for o in obs:
+        np.testing.assert_allclose(o.g, [0.0, 0.08 * DT, 0.0], atol=1e-12)
+
+
+def test_gaps_and_standstill_yield_no_experience():
+    b = ExperienceBuilder(ROUTE, DT)
+    b.add_command(0, 0.5, 0.0)
+    b.add_command(1, 0.5, 0.0)
+    assert b.add_estimate(0, 0.0, 4, (0.0, 0.0, 0.0)) is None
+    assert b.add_estimate(1, 0.1, 4, (0.05, 0.0, 0.0)) is None
+    assert b.add_estimate(3, 0.3, 5, (0.0, 0.0, 0.0)) is None   # tick 2 dropped out
+    assert drive(ExperienceBuilder(ROUTE, DT), 0.0, 0.0, 0.0) == []
+
+
+def test_residual_helpers():
+    g = body_residual((0, 0, math.pi / 2), 1.0, 0.0, (0.0, 0.1, math.pi / 2), 0.1)
+    np.testing.assert_allclose(g, 0.0, atol=1e-12)
+    assert body_velocity((0, 0, math.pi / 2), (0.0, 0.1, math.pi / 2 + 0.01), 0.1) == pytest.approx((1.0, 0.1))
+
+
+# --- database -------------------------------------------------------------------------------------
+def exp(seq, vertex, v=0.5, path="p", robot="r1"):
+    return Experience(stamp_s=seq * 0.1, robot=robot, trial=1, path_id=path, seq=seq, vertex=vertex, v_cmd_mps=v,
+                      a=tuple(float(seq + i) for i in range(9)), g=(0.001 * seq, 0.0, 0.0))
+
+
+def test_bins_keep_the_newest_c_bin_and_windows_follow_5_3_2(tmp_path):
+    db = ExperienceDB(tmp_path / "x.db", BinPolicy(v_bin_mps=0.25, c_bin=4, c_vertex=2, c_velocity=1))
+    db.ingest("s1", [exp(i, vertex=i % 10, v=0.5 + 0.3 * (i % 3)) for i in range(300)])
+    assert db.max_bin_count("p") == 4
+    # bin of vertex 3 at 0.5 m/s (l=2): newest 4 of the seqs that landed there
+    w = db.window("p", 3, 0.55, c_vertex=0, c_velocity=0)
+    assert (w.vertex_lo, w.vertex_hi, w.bin_lo, w.bin_hi) == (3, 3, 2, 2)
+    expected = sorted([i for i in range(300) if i % 10 == 3 and i % 3 == 0])[-4:]
+    assert sorted(int(round(a[0])) for a in w.A) == expected
+    # full window: vertices 1..5, speed bins 1..3 (0.5 m/s -> l=2; 0.8 -> 3; 1.1 -> 4 is outside)
+    w = db.window("p", 3, 0.5)
+    assert set(w.vertices) == {1, 2, 3, 4, 5} and set(w.speed_bins) == {2, 3}
+    assert len(w.A) == 5 * 2 * 4 and w.G.shape == (40, 3)
+    assert db.stats() == [{"path_id": "p", "retained": 10 * 3 * 4, "ingested": 300, "bins": 30, "hyper_version": 0}]
+
+
+def test_resends_are_stored_once_even_after_eviction_and_robots_pool(tmp_path):
+    db = ExperienceDB(tmp_path / "x.db", BinPolicy(c_bin=2))
+    db.ingest("s1", [exp(i, vertex=0) for i in range(5)])
+    assert db.ingest("s1", [exp(0, vertex=0), exp(4, vertex=0)]) == [0, 4]   # acknowledged again ...
+    assert db.stats()[0]["ingested"] == 5                                     # ... but not stored again
+    db.ingest("s2", [exp(0, vertex=0, robot="r2")])                            # another robot, same bin
+    w = db.window("p", 0, 0.5, c_vertex=0, c_velocity=0)
+    assert len(w.A) == 2 and db.stats()[0]["ingested"] == 6
+
+
+def test_database_survives_reopening_and_versions_hyperparameters(tmp_path):
+    path = tmp_path / "x.db"
+    db = ExperienceDB(path)
+    db.ingest("s1", [exp(i, vertex=i) for i in range(20)])
+    assert db.save_hyper("p", {"lml": [1.0]}, 1.0) == 1
+    assert db.save_hyper("p", {"lml": [2.0]}, 2.0) == 2
+    db.close()
+    db = ExperienceDB(path)
+    assert db.stats()[0]["retained"] == 20 and db.latest_hyper("p")["lml"] == [2.0]
+    A, G = db.all_of("p")
+    assert A.shape == (20, 9) and G[7, 0] == pytest.approx(0.007)
+    assert [e.seq for _, e in db.experiences("p", limit=5)] == [0, 1, 2, 3, 4]

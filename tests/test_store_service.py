@@ -1,0 +1,169 @@
+"""The experience store as a real process: durability under SIGKILL, rejection of bad experiences,
+window queries over the bus, the controller-side cache, and fits on request."""
+from __future__ import annotations
+
+import signal
+import sqlite3
+import threading
+
+import msgpack
+import numpy as np
+import pytest
+
+from common import keys
+from common.bus import Node, query_one
+from common.codec import decode, encode
+from common.config import dump_toml
+from common.messages import Experience, ExperienceAck, ExperienceBatch, ExperienceWindow, HyperMsg
+from common.path import Path
+from common.store_client import ExperienceOutbox, WindowCache
+from deploy.launcher import Launcher
+from deploy.router import free_port
+from services.gp_store.config import BinConfig, FitConfig, StoreConfig
+from services.localizer.config import LocalizerConfig
+from services.localizer.routes import RouteStore
+from tests.conftest import wait_until
+
+pytestmark = pytest.mark.integration
+N_VERTICES = 400
+
+
+class StoreRig:
+    """Router + localizer (serves the route) + gp_store, and a client node playing a robot."""
+
+    def __init__(self, base, c_bin=4):
+        self.base = base
+        RouteStore(base / "data" / "routes").save(
+            Path("dur", np.column_stack([np.arange(N_VERTICES) * 0.25, np.zeros(N_VERTICES), np.zeros(N_VERTICES)])), 0.0)
+        (base / "loc.toml").write_text(dump_toml(LocalizerConfig(robot_name="r1", data_dir=str(base / "data"))))
+        self.store_cfg = StoreConfig(name="s1", db_path=str(base / "data" / "exp.db"),
+                                     bins=BinConfig(c_bin=c_bin), fit=FitConfig(restarts=1, auto_after_trial=False))
+        (base / "store.toml").write_text(dump_toml(self.store_cfg))
+        self.port = free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.launcher = Launcher(self.endpoint, base / "logs")
+        self.launcher.start_router(self.port)
+        self.launcher.start_service("localizer", base / "loc.toml")
+        self.node = Node("test", "r1", self.endpoint)
+        self.start_store()
+
+    def start_store(self):
+        self.launcher.start_service("gp_store", self.base / "store.toml")
+        up = threading.Event()
+        self.node.liveliness_subscriber(keys.alive(keys.STORE_ROBOT, "gp_store"), lambda k, alive: alive and up.set())
+        assert up.wait(30), "store did not come up"
+
+    def log(self):
+        return (self.base / "logs" / "gp_store.log").read_text()
+
+    def close(self):
+        self.node.close()
+        self.launcher.stop()
+
+
+@pytest.fixture
+def rig(tmp_path):
+    r = StoreRig(tmp_path)
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def unique_bin_experience(outbox, i):
+    # one experience per (vertex, speed bin): nothing is evicted, so every acknowledged one must be there
+    return outbox.add(stamp_s=0.1 * i, trial=1, path_id="dur", vertex=i % N_VERTICES, v_cmd_mps=0.25 * (i // N_VERTICES) + 0.1,
+                      a=[0.01 * i] * 9, g=[0.001, -0.002, 0.0005])
+
+
+def test_sigkill_during_ingestion_loses_no_acknowledged_experience(rig):
+    acked: set[int] = set()
+    rig.node.subscribe(keys.experience_ack("r1"), ExperienceAck, lambda m, k: acked.update(m.seqs))
+    outbox = ExperienceOutbox(rig.node, "r1", resend_after_s=1.0)
+    total = 3000
+    for i in range(total):
+        unique_bin_experience(outbox, i)
+        if i % 50 == 49:
+            outbox.flush()
+        if i == 1500:
+            wait_until(lambda: len(acked) > 500, 20, "first acknowledgements")
+            rig.launcher.kill("gp_store", signal.SIGKILL)   # mid-stream: batches are still arriving
+    outbox.flush()
+    acked_before_restart = set(acked)
+    assert 500 < len(acked_before_restart) < total
+    rig.start_store()
+    assert outbox.wait_acked(60), f"{outbox.pending} experiences never acknowledged"
+    rig.launcher.stop()   # read the file with the store gone
+    db = sqlite3.connect(rig.store_cfg.db_path)
+    stored = {s for (s,) in db.execute("SELECT seq FROM experiences WHERE source=?", (outbox.source,))}
+    assert acked_before_restart <= stored
+    assert len(stored) == total          # re-sent after the restart, each stored once
+    (max_in_bin,) = db.execute("SELECT MAX(n) FROM (SELECT COUNT(*) n FROM experiences GROUP BY path_id, vertex, "
+                               "speed_bin)").fetchone()
+    assert max_in_bin <= rig.store_cfg.bins.c_bin
+
+
+def test_crowded_bins_respect_c_bin_after_a_crash(rig):
+    outbox = ExperienceOutbox(rig.node, "r1", resend_after_s=1.0)
+    for i in range(1200):  # 10 vertices x 1 speed bin: 120 per bin
+        outbox.add(stamp_s=0.1 * i, trial=1, path_id="dur", vertex=i % 10, v_cmd_mps=0.5, a=[0.0] * 9, g=[0.0] * 3)
+        if i % 100 == 99:
+            outbox.flush()
+        if i == 600:
+            rig.launcher.kill("gp_store", signal.SIGKILL)
+            rig.start_store()
+    assert outbox.wait_acked(60)
+    w = query_one(rig.node.session, f"{keys.store_window('dur')}?vertex=5&speed=0.5", ExperienceWindow)
+    counts = np.bincount(np.asarray(w.vertices))
+    assert counts.max() == 4 and len(w.vertices) == 4 * 10
+
+
+def test_bad_experiences_are_rejected_with_a_reason(rig):
+    rejected: list[ExperienceAck] = []
+    rig.node.subscribe(keys.experience_ack("r1"), ExperienceAck, lambda m, k: m.rejected and rejected.append(m))
+    good = Experience(stamp_s=0.0, robot="r1", trial=1, path_id="dur", seq=0, vertex=1, v_cmd_mps=0.5, a=(0.0,) * 9,
+                      g=(0.0,) * 3)
+    body = msgpack.unpackb(encode(ExperienceBatch(stamp_s=0.0, robot="r1", source="t1", experiences=[good])))
+    body["experiences"][0]["g"][0] = float("nan")
+    rig.node.session.put(keys.experience("r1"), msgpack.packb(body))
+    body["experiences"][0]["g"] = [0.0, 0.0]
+    rig.node.session.put(keys.experience("r1"), msgpack.packb(body))
+    unknown = Experience(stamp_s=0.0, robot="r1", trial=1, path_id="nope", seq=1, vertex=1, v_cmd_mps=0.5,
+                         a=(0.0,) * 9, g=(0.0,) * 3)
+    far = Experience(stamp_s=0.0, robot="r1", trial=1, path_id="dur", seq=2, vertex=N_VERTICES + 5, v_cmd_mps=0.5,
+                     a=(0.0,) * 9, g=(0.0,) * 3)
+    rig.node.publish(keys.experience("r1"), ExperienceBatch(stamp_s=0.0, robot="r1", source="t1",
+                                                            experiences=[unknown, far]))
+    wait_until(lambda: rejected, 15, "a rejection")
+    assert sorted(rejected[0].rejected) == [1, 2]
+    assert "unknown route 'nope'" in rejected[0].reason and "beyond the 400 vertices" in rejected[0].reason
+    log = rig.log()
+    assert "rejected message on lbc/r1/experience" in log and "must be finite" in log and "must hold 3 values" in log
+    assert rig.launcher.exited() == []
+
+
+def test_cache_prefetches_windows_and_fits_on_request(rig):
+    outbox = ExperienceOutbox(rig.node, "r1")
+    rng = np.random.default_rng(0)
+    for i in range(600):
+        s = 0.05 * i
+        outbox.add(stamp_s=0.1 * i, trial=1, path_id="dur", vertex=int(s / 0.25), v_cmd_mps=0.5,
+                   a=[s, 0.01 * rng.standard_normal(), 0.0, 0.5, 0.0, 0.5, 0.0, 0.5, 0.0],
+                   g=[0.0, 0.01 * np.sin(s) + 0.001 * rng.standard_normal(), 0.0])
+    assert outbox.wait_acked(30)
+    cache = WindowCache(rig.node.session, lookahead_vertices=30)
+    try:
+        cache.set_route("dur", N_VERTICES)
+        assert cache.local(20, 0.5).missing_bins > 0           # nothing fetched yet, and no waiting for it
+        cache.set_position(20, 0.5)
+        wait_until(lambda: cache.local(40, 0.5).missing_bins == 0, 10, "prefetch of the windows ahead")
+        local = cache.local(20, 0.5)
+        assert len(local.A) == 11 * 4 and local.G.shape == (44, 3)   # 11 vertices x c_bin, one speed bin
+        hyper = query_one(rig.node.session, keys.store_fit("dur"), HyperMsg, timeout_s=300)
+        assert hyper.version == 1 and hyper.n_total == len(set(range(120))) * 4 or hyper.n_total > 0
+        wait_until(lambda: cache.hyper is not None and cache.hyper.version == 1, 10, "hyperparameters to arrive")
+        # the store goes away: the cache keeps what it has
+        rig.launcher.kill("gp_store", signal.SIGKILL)
+        assert len(cache.local(20, 0.5).A) == 44 and cache.hyper.version == 1
+    finally:
+        cache.close()
