@@ -70,6 +70,12 @@ class ExperienceOutbox:
             self._new.append(exp)
             return exp
 
+    def add_existing(self, exp: Experience) -> None:
+        """Queue an experience that already has its identity (seq under this outbox's source), e.g. on
+        import: the store keeps (source, seq) unique, so importing the same file twice stores it once."""
+        with self._lock:
+            self._new.append(exp)
+
     def flush(self) -> int:
         """Send new experiences and re-send stale ones; returns how many went out. Never blocks."""
         now = time.monotonic()

@@ -10,7 +10,7 @@ import threading
 
 from common.config import ConfigError
 
-BENCHES = ("bus",)
+BENCHES = ("bus", "gp")
 
 
 def _raise_interrupt(_signum, _frame):
@@ -85,6 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     launch.add_argument("--dir", default="runs/deployment", help="configs, logs and data of the deployment")
     launch.add_argument("--log-level", default="INFO")
     launch.set_defaults(func=_launch)
+
+    from deploy import store_cli
+    store_cli.add_parser(sub)
 
     router = sub.add_parser("router", help="run the local Zenoh router")
     router.add_argument("args", nargs=argparse.REMAINDER)

@@ -44,6 +44,10 @@ class Launcher:
     def _spawn(self, name: str, args: list[str]) -> Child:
         log_path = self.log_dir / f"{name}.log"
         env = dict(os.environ, **{PARENT_ENV: str(os.getpid()), "PYTHONUNBUFFERED": "1"})
+        # one BLAS thread per process: several services share few cores, and a multi-threaded BLAS
+        # fighting over them makes small solves 5-100x slower (set them yourself to override)
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            env.setdefault(var, "1")
         with open(log_path, "ab") as fh:
             proc = subprocess.Popen([sys.executable, *args], stdout=fh, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, env=env)

@@ -13,8 +13,9 @@ import zenoh
 from mcap.reader import make_reader
 
 from common import keys
+from common.bus import query
 from common.codec import decode, encode
-from common.messages import BridgeStatus, ControllerStatus, ControlRequest, TruthPose, VelocityCommand
+from common.messages import BridgeStatus, ControlRequest, StoreStats, TruthPose, VelocityCommand
 from deploy.experiment import run_experiment
 from tests.conftest import SHORT_SCENARIO, wait_until
 
@@ -145,3 +146,32 @@ def test_realtime_clock_runs_at_wall_clock_pace(tmp_path, scenario_file):
     assert t["completed"] and t["max_lateral_m"] < 0.05
     # realtime: a trial takes about as long on the wall clock as in robot time
     assert 0.7 * t["travel_time_s"] <= t["wall_time_s"] <= 1.5 * t["travel_time_s"] + 1.0
+
+
+def test_store_cli_stats_query_fit_export_import(deployment, tmp_path, capsys):
+    from deploy.cli import main as lbc
+    dep = deployment
+    dep.exp.teach()
+    dep.exp.repeat(1, 0.8)
+    hyper, ingested = dep.exp.learn(1)
+    assert hyper is not None and hyper.version == 1 and ingested > 50
+    capsys.readouterr()
+    ep = ["--connect", dep.endpoint]
+    assert lbc(["store", "stats", *ep]) == 0
+    out = capsys.readouterr().out
+    assert "itest" in out and str(ingested) in out and "v1" in out
+    assert lbc(["store", "query", "--path", "itest", "--vertex", "10", "--speed", "0.8", *ep]) == 0
+    out = capsys.readouterr().out
+    assert "experiences in vertices 5..15" in out and "g.dy_body_m" in out
+    assert lbc(["store", "fit", "--path", "itest", *ep]) == 0
+    assert "hyperparameters v2" in capsys.readouterr().out
+    f = tmp_path / "exp.mcap"
+    assert lbc(["store", "export", "--path", "itest", "--out", str(f), *ep]) == 0
+    n = int(capsys.readouterr().out.split()[1])
+    stats = [decode(StoreStats, r.payload) for r in query(dep.session, keys.store_stats())]
+    assert n == sum(p.retained for s in stats for p in s.paths if p.path_id == "itest") > 0
+    # importing what the store already holds stores nothing twice
+    assert lbc(["store", "import", str(f), *ep]) == 0
+    assert f"imported {n} experiences (0 rejected)" in capsys.readouterr().out
+    assert dep.exp.ingested() == ingested
+    assert lbc(["store", "fit", "--path", "nope", *ep]) == 1

@@ -159,15 +159,15 @@ class ExperienceDB:
             rows = self._rdb.execute("SELECT a, g FROM experiences WHERE path_id=? ORDER BY id", (path_id,)).fetchall()
         return _stack([r[0] for r in rows], A_DIM), _stack([r[1] for r in rows], G_DIM)
 
-    def experiences(self, path_id: str, after_id: int = 0, limit: int = 5000) -> list[tuple[int, Experience]]:
-        """Stored experiences with their row ids, in insertion order (for export)."""
+    def experiences(self, path_id: str, after_id: int = 0, limit: int = 5000) -> list[tuple[int, str, Experience]]:
+        """Stored experiences as (row id, source, experience), in insertion order (for export)."""
         with self._rlock:
             rows = self._rdb.execute("SELECT id, robot, trial, path_id, seq, vertex, v_cmd_mps, stamp_s, a, g, source "
                                     "FROM experiences WHERE path_id=? AND id > ? ORDER BY id LIMIT ?",
                                     (path_id, after_id, limit)).fetchall()
-        return [(r[0], Experience(stamp_s=r[7], robot=r[1], trial=r[2], path_id=r[3], seq=r[4], vertex=r[5],
-                                  v_cmd_mps=r[6], a=tuple(np.frombuffer(r[8], "<f8").tolist()),
-                                  g=tuple(np.frombuffer(r[9], "<f8").tolist()))) for r in rows]
+        return [(r[0], r[10], Experience(stamp_s=r[7], robot=r[1], trial=r[2], path_id=r[3], seq=r[4], vertex=r[5],
+                                         v_cmd_mps=r[6], a=tuple(np.frombuffer(r[8], "<f8").tolist()),
+                                         g=tuple(np.frombuffer(r[9], "<f8").tolist()))) for r in rows]
 
     def latest_hyper(self, path_id: str) -> dict | None:
         with self._rlock:

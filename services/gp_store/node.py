@@ -196,6 +196,8 @@ class StoreService(Service):
         self._answer(query, answer)
 
     def _on_dump(self, query: zenoh.Query) -> None:
+        """Every retained experience of a route, in chunks, each batch under its producer's source so
+        that an import elsewhere keeps the (source, seq) identity."""
         def answer():
             path_id = check_name("path_id", self._path_of(query))
             after = 0
@@ -204,8 +206,12 @@ class StoreService(Service):
                 if not rows:
                     break
                 after = rows[-1][0]
-                query.reply(keys.store_dump(path_id), encode(ExperienceBatch(
-                    stamp_s=time.time(), robot=keys.STORE_ROBOT, source=self.cfg.name, experiences=[e for _, e in rows])))
+                by_source: dict[str, list] = {}
+                for _, source, e in rows:
+                    by_source.setdefault(source, []).append(e)
+                for source, exps in by_source.items():
+                    query.reply(keys.store_dump(path_id), encode(ExperienceBatch(
+                        stamp_s=time.time(), robot=keys.STORE_ROBOT, source=source, experiences=exps)))
         self._answer(query, answer)
 
     def _on_stats(self, query: zenoh.Query) -> None:
