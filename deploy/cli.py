@@ -10,7 +10,7 @@ import threading
 
 from common.config import ConfigError
 
-BENCHES = ("bus", "gp")
+BENCHES = ("bus", "gp", "store")
 
 
 def _raise_interrupt(_signum, _frame):

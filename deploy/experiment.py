@@ -22,12 +22,13 @@ from common import keys
 from common.bus import open_session, query, query_one
 from common.codec import Decoder, decode, encode
 from common.config import ConfigError
-from common.messages import (ControllerStatus, ControlReply, ControlRequest, HyperMsg, LocState, RouteMsg,
-                             StoreStats, TrialEvent, TruthPose)
+from common.messages import (ControllerStatus, ControlReply, ControlRequest, Experience, ExperienceBatch, HyperMsg,
+                             LocState, RouteMsg, StoreStats, TrialEvent, TruthPose)
 from common.path import Path
 from common.scenario import Scenario, load_scenario
 from deploy.configs import service_configs, write_service_configs
 from deploy.launcher import Launcher
+from deploy.learned import predict_trial
 from deploy.metrics import TrialRecord, trial_metrics, truth_series
 from deploy.recorder import McapRecorder
 from deploy.router import free_port
@@ -116,8 +117,27 @@ class Experiment:
         self._decls = [session.declare_subscriber(key, self._enqueue(kind, cls, key)) for kind, cls, key in (
             ("truth", TruthPose, keys.truth(r)), ("status", ControllerStatus, keys.ctrl_status(r)),
             ("loc", LocState, keys.loc_state(r)), ("event", TrialEvent, keys.trial_event(r)))]
+        self.experiences: dict[int, dict[tuple[str, int], Experience]] = {}
+        self._decls.append(session.declare_subscriber(keys.experience(r), self._on_experiences))
         for pattern in (keys.alive_all(r), keys.alive(keys.STORE_ROBOT, "gp_store")):
             self._decls.append(session.liveliness().declare_subscriber(pattern, self._on_alive, history=True))
+
+    def _on_experiences(self, sample) -> None:
+        batch = self.decoder(ExperienceBatch, sample.payload.to_bytes(), str(sample.key_expr))
+        if batch is not None:
+            for e in batch.experiences:   # re-sends arrive twice: keep one per (source, seq)
+                self.experiences.setdefault(e.trial, {})[(batch.source, e.seq)] = e
+
+    def trial_experiences(self, trial: int) -> list[Experience]:
+        return list(self.experiences.get(trial, {}).values())
+
+    def retained(self) -> list[Experience]:
+        """Every experience the store keeps for this route (what the next trial's model learns from)."""
+        out = []
+        for rep in query(self.session, keys.store_dump(self.path_id), timeout_s=60.0):
+            if rep.error is None:
+                out.extend(decode(ExperienceBatch, rep.payload).experiences)
+        return out
 
     def _enqueue(self, kind: str, cls: type, key: str):
         def on_sample(sample) -> None:
@@ -334,7 +354,7 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
         endpoint = connect
     summary: dict[str, Any] = {"scenario": sc.name, "algorithm": sc.controller.algorithm, "trials": []}
     session = recorder = exp = None
-    series, records = [], []
+    series, records, disturbance = [], [], []
     try:
         try:
             session = open_session(endpoint, timeout_s=30.0)
@@ -346,13 +366,24 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
         exp.wait_ready()
         path = exp.teach()
         limits = (sc.constraints.lateral_m, math.radians(sc.constraints.heading_deg))
+        model_train, model_hyper = [], None     # what the store knew before the trial
         for trial in range(1, sc.trials.count + 1):
             rec = exp.repeat(trial, sc.trials.speed_of(trial))
             records.append(rec)
-            _hyper, ingested = exp.learn(trial)
+            hyper, ingested = exp.learn(trial)
+            d = predict_trial(trial, exp.trial_experiences(trial), model_train, model_hyper, sc.store.v_bin_mps,
+                              sc.store.c_vertex, sc.store.c_velocity)
+            disturbance.append(d)
+            model_train, model_hyper = exp.retained(), hyper
             s = truth_series(path, rec)
             series.append(s)
             m = trial_metrics(path, rec, s, *limits, experiences_total=ingested)
+            nominal, learned = d.rmse()
+            m.update({"experiences_trial": len(d.observed),
+                      "heading_rate_residual_rmse_nominal_radps": float(nominal[2] / sc.sim.period_s),
+                      "heading_rate_residual_rmse_learned_radps": float(learned[2] / sc.sim.period_s),
+                      "lateral_residual_rmse_nominal_mps": float(nominal[1] / sc.sim.period_s),
+                      "lateral_residual_rmse_learned_mps": float(learned[1] / sc.sim.period_s)})
             summary["trials"].append(m)
             write_json_atomic(out / "summary.json", summary)  # nothing lost if a later trial fails
             progress.line(f"trial {trial:>2}/{sc.trials.count} {'done' if rec.completed else 'NOT COMPLETED'}: "
@@ -380,6 +411,6 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
                 "wall s per simulated minute (whole run)": round(wall / (sim_s / 60.0), 2) if sim_s else None,
                 "messages recorded": recorder.count if recorder else 0}
     from deploy.report import write_report  # matplotlib only when a report is written
-    write_report(out / "report.html", sc, exp.path, series, summary, run_info)
+    write_report(out / "report.html", sc, exp.path, series, summary, run_info, disturbance)
     progress.line(f"wrote {out / 'summary.json'}, {out / 'report.html'}, {out / 'run.mcap'} in {wall:.1f} s")
     return summary

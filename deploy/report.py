@@ -23,6 +23,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from common.path import Path  # noqa: E402
 from common.scenario import Scenario  # noqa: E402
+from deploy.learned import DisturbanceSeries  # noqa: E402
 from deploy.metrics import TrialSeries  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -187,6 +188,44 @@ def _plot_solve(series: list[TrialSeries], trials: list[dict]) -> str:
         return _png(fig)
 
 
+def _plot_disturbance(dist: list[DisturbanceSeries], period_s: float) -> str:
+    """Observed one-step disturbance of the last trial against the model learned before it, as rates
+    (g / period): lateral slide (m/s) and heading rate (deg/s); plus RMSE of nominal vs learned per trial."""
+    with _figure(3, 1, size=(10, 9)) as (fig, (ax_y, ax_h, ax_r)):
+        last = next((d for d in reversed(dist) if len(d.observed)), None)
+        if last is None:
+            for ax in (ax_y, ax_h):
+                _no_data(ax, "experiences")
+        else:
+            order = np.argsort(last.s_m)
+            for ax, i, scale, unit in ((ax_y, 1, 1.0, "m/s"), (ax_h, 2, math.degrees(1.0), "deg/s")):
+                k = scale / period_s
+                ax.plot(last.s_m, last.observed[:, i] * k, ".", ms=2.5, color="0.45", label="observed")
+                m, sd = last.mean[order, i] * k, last.std[order, i] * k
+                ax.plot(last.s_m[order], m, color="tab:blue", lw=1.2,
+                        label=f"predicted (model v{last.hyper_version}, trials < {last.trial})")
+                ax.fill_between(last.s_m[order], m - 2 * sd, m + 2 * sd, color="tab:blue", alpha=0.15,
+                                label="±2σ")
+                ax.set(ylabel=f"{'lateral slide' if i == 1 else 'heading rate'} ({unit})")
+                ax.grid(alpha=0.3)
+                ax.legend(fontsize=8, loc="upper right")
+            ax_h.set(xlabel="distance along route (m)")
+            ax_y.set_title(f"trial {last.trial}: disturbance not explained by the unicycle model (eq. 5.17)")
+        trials = [d.trial for d in dist]
+        if trials:
+            nominal = np.array([d.rmse()[0][2] for d in dist]) * math.degrees(1.0) / period_s
+            learned = np.array([d.rmse()[1][2] for d in dist]) * math.degrees(1.0) / period_s
+            ax_r.plot(trials, nominal, "o-", color="0.45", label="nominal model only")
+            ax_r.plot(trials, learned, "s-", color="tab:blue", label="with the learned GP")
+            ax_r.legend(fontsize=8)
+        else:
+            _no_data(ax_r, "trials")
+        ax_r.set(xlabel="trial", ylabel="heading-rate residual RMSE (deg/s)", ylim=(0, None))
+        ax_r.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax_r.grid(alpha=0.3)
+        return _png(fig)
+
+
 def _kv_table(rows: dict) -> str:
     body = "".join(f"<tr><td class=k>{html.escape(str(k))}</td><td>{html.escape(_fmt(v))}</td></tr>"
                    for k, v in rows.items())
@@ -210,7 +249,7 @@ def _section(title: str, caption: str, png: str) -> str:
 
 
 def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, series: list[TrialSeries],
-                 summary: dict, run_info: dict) -> None:
+                 summary: dict, run_info: dict, disturbance: list[DisturbanceSeries] | None = None) -> None:
     """Write the experiment report as one self-contained HTML file at `out_path`."""
     series = sorted(series, key=lambda s: s.trial)
     trials = sorted(summary.get("trials") or [], key=lambda t: t.get("trial", 0))
@@ -240,6 +279,11 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
                  "route (m), coloured by trial.", _plot_speed(series, norm)),
         _section("Solve time", "Controller solve time per control step (ms): per-trial median and 99th "
                  "percentile, and the histogram over all trials.", _plot_solve(series, trials)),
+        _section("Learned disturbance", "What the nominal unicycle model misses, per control period, against "
+                 "what the GP learned from earlier trials predicts for it (local windows and hyperparameters "
+                 "as the controller uses them); bottom: heading-rate residual RMSE per trial without and with "
+                 "the learned model (trial 1 has no model yet).",
+                 _plot_disturbance(disturbance or [], scenario.sim.period_s)),
         "<h2>Trials</h2><p class=cap>All summary.json entries per trial; highlighted rows violated a "
         "constraint or did not complete. Angles in rad, times in s unless named otherwise.</p>",
         _trial_table(trials),
