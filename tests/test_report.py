@@ -7,11 +7,12 @@ import pytest
 
 from common.path import Path
 from common.scenario import parse_scenario
+from deploy.learned import DisturbanceSeries
 from deploy.metrics import TrialSeries
 from deploy.report import write_report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-N_IMAGES = 5  # map, tracking errors, learning, speed, solve time
+N_IMAGES = 6  # map, tracking errors, learning, speed, solve time, learned disturbance
 
 
 def make_scenario():
@@ -67,18 +68,28 @@ def entry(series, completed=True, violations=0):
             "experiences_total": series.trial, "end_reason": "finished" if completed else "<aborted>"}
 
 
-def render(tmp_path, series, entries):
+def disturbance(trial, n=200, learned=True):
+    rng = np.random.default_rng(trial)
+    s = np.linspace(0, 20, n)
+    g = np.column_stack([np.zeros(n), 0.01 * np.sin(s), 0.03 * np.exp(-(s - 10) ** 2)]) + 0.002 * rng.standard_normal((n, 3))
+    mean = g * 0.9 if learned else np.zeros_like(g)
+    return DisturbanceSeries(trial, trial - 1, 100 * (trial - 1), s, g, mean, np.full_like(g, 0.003))
+
+
+def render(tmp_path, series, entries, dist=None):
     out = tmp_path / "sub" / "report.html"
     summary = {"scenario": "demo_slope", "algorithm": "lb-nmpc", "trials": entries}
     write_report(out, make_scenario(), make_path(), series, summary,
-                 {"wall_time_s": 12.5, "robot": "husky", "command": "lbc run demo.toml <x>"})
+                 {"wall_time_s": 12.5, "robot": "husky", "command": "lbc run demo.toml <x>"}, dist)
     return out.read_text(encoding="utf-8")
 
 
 def test_report_contents(tmp_path):
     path = make_path()
     series = [make_series(path, 1), make_series(path, 2)]
-    page = render(tmp_path, series, [entry(series[0], violations=3), entry(series[1])])
+    page = render(tmp_path, series, [entry(series[0], violations=3), entry(series[1])],
+                  [disturbance(1, learned=False), disturbance(2)])
+    assert "Learned disturbance" in page
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     assert "demo_slope" in page and "lb-nmpc" in page and "husky" in page
     images = re.findall(r"data:image/png;base64,([A-Za-z0-9+/=]+)", page)

@@ -167,3 +167,32 @@ def test_cache_prefetches_windows_and_fits_on_request(rig):
         assert len(cache.local(20, 0.5).A) == 44 and cache.hyper.version == 1
     finally:
         cache.close()
+
+
+def test_two_stores_split_the_routes_between_them(tmp_path):
+    from common.bus import query
+    from common.messages import StoreStats
+    rig = StoreRig(tmp_path)   # store s1 serves every route; replace it by two stores with one route each
+    try:
+        rig.launcher.kill("gp_store", signal.SIGTERM)
+        RouteStore(tmp_path / "data" / "routes").save(
+            Path("two", np.column_stack([np.arange(50) * 0.25, np.zeros(50), np.zeros(50)])), 0.0)
+        for name, route in (("a", "dur"), ("b", "two")):
+            cfg = StoreConfig(name=name, db_path=str(tmp_path / f"{name}.db"), paths=[route])
+            (tmp_path / f"{name}.toml").write_text(dump_toml(cfg))
+            rig.launcher.start_service("gp_store", tmp_path / f"{name}.toml")
+        wait_until(lambda: len([r for r in query(rig.node.session, keys.store_stats(), timeout_s=2.0)
+                                if r.error is None]) == 2, 30, "both stores")
+        outbox = ExperienceOutbox(rig.node, "r1")
+        for i in range(40):
+            outbox.add(stamp_s=0.1 * i, trial=1, path_id="dur" if i % 2 else "two", vertex=i // 2, v_cmd_mps=0.5,
+                       a=[0.0] * 9, g=[0.0] * 3)
+        assert outbox.wait_acked(20)
+        stats = {s.store: s for s in (decode(StoreStats, r.payload)
+                                      for r in query(rig.node.session, keys.store_stats()) if r.error is None)}
+        assert [p.path_id for p in stats["a"].paths] == ["dur"] and stats["a"].paths[0].ingested == 20
+        assert [p.path_id for p in stats["b"].paths] == ["two"] and stats["b"].paths[0].ingested == 20
+        w = query_one(rig.node.session, f"{keys.store_window('two')}?vertex=5&speed=0.5", ExperienceWindow)
+        assert w.path_id == "two" and len(w.vertices) == 11
+    finally:
+        rig.close()
