@@ -98,8 +98,10 @@ class ExperienceOutbox:
                 self._pending.popitem(last=False)
                 self.dropped += 1
         for i in range(0, len(out), self.max_batch):
+            # droppable: called from the control loop, which must never wait on a congested link;
+            # a dropped batch is simply re-sent when its acknowledgement does not come
             self.node.publish(self._key, ExperienceBatch(stamp_s=time.time(), robot=self.robot, source=self.source,
-                                                         experiences=out[i:i + self.max_batch]))
+                                                         experiences=out[i:i + self.max_batch]), droppable=True)
         return len(out)
 
     @property
