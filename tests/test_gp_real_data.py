@@ -32,11 +32,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from common.shared_data import shared_data_dir
 from common.gp import GaussianProcess, fit_hyperparameters
 from common.robot import steering_from_unicycle
 from services.controller.experience import body_residual, body_velocity
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "f1tenth_friction"
+DATA = shared_data_dir() / "f1tenth_friction"
 DT = 0.1                 # s, controller period
 WHEELBASE_M = 0.325      # assumed F1/10 wheelbase (L of eq. 5.27)
 MOVING_V = 0.1           # m/s, commanded speed above which the car counts as driving
