@@ -1,28 +1,13 @@
 """`lbc bench gp --n N`: GP hyperparameter fitting (thesis 5.2.3) against scikit-learn, on realistic data.
 
-Data: N one-step disturbance observations from the project's own simulator, made the way the thesis
-makes them (eq. 5.15, 5.17). A Husky is taught a 33 m route (the one of examples/husky-sideslope.toml)
-that crosses a 12 degree sandy side slope with a slip patch, then repeats it with the feedback-
-linearized tracker at several speeds (0.3 to 1.0 m/s), all from the pure cores the services run
-(`Simulator`, `smooth_waypoints`/`PurePursuitDriver`, `PoseSource`, `PathTracker`), without the bus.
-The localizer is the `pose` source with its default noise (1 cm, 0.3 degrees). With hats for the
-localizer's estimates, dt = 0.1 s and u = (v_cmd, w_cmd), each tick k of a repeat (while tracking,
-with estimates at k-2, k-1 and k) gives one pair (a, g):
-
-    a = (x, y, theta of the robot relative to its nearest route vertex at k-1,        [x_{k-1}]
-         v_act, w_act at k-2 from consecutive estimates (thesis 5.3.1):                [v_{k-2}]
-             v = |p_{k-1} - p_{k-2}| / dt,  w = wrap(theta_{k-1} - theta_{k-2}) / dt,
-         v_cmd, w_cmd at k-1,                                                         [u_{k-1}]
-         v_cmd, w_cmd at k-2)                                                         [u_{k-2}]
-
-i.e. a_{k-1} = (x_{k-1}, v_{k-2}, u_{k-1}, u_{k-2}) of eq. 5.15, and the disturbance of eq. 5.17,
-
-    g = x_k - f(x_{k-1}, u_{k-1}),   f the nominal unicycle of eq. 5.26,
-
-computed from world-frame estimates (the vertex frames of k-1 and k may differ) and expressed in the
-robot body frame at k-1: the position residual rotated by -theta_{k-1}, the heading residual wrapped.
-So p = 9 inputs and d = 3 outputs. Trials cycle through the speeds until at least N observations
-exist (every speed at least once); N of them are then drawn at random.
+Data: N one-step disturbance observations from the project's own simulator, exactly as the running
+controller makes them (`services.controller.experience`, eq. 5.15 and 5.17: route coordinates, body
+velocities from consecutive estimates, current and previous commands in `a`; the unicycle residual in
+the body frame as `g`; p = 9, d = 3). A Husky is taught the 33 m route of examples/husky-sideslope.toml
+(a 12 degree sandy side slope with a slip patch), then repeats it with the feedback-linearized tracker
+at several speeds (0.3 to 1.0 m/s), through `bench.closed_loop.ClosedLoop`: the services' pure cores
+without the bus, with the `pose` localizer's default noise (1 cm, 0.3 degrees). Trials cycle through
+the speeds until at least N observations exist (every speed at least once); N are drawn at random.
 
 Comparison (DESIGN.md, "Benchmarks"): the project fits all N by its own method (`fit_hyperparameters`:
 exact, on a random subsample of `--max-points` rows when N is larger); E is a fixed random evaluation
@@ -47,21 +32,15 @@ import math
 import sys
 import time
 import warnings
-from collections import deque
 from contextlib import nullcontext
 
 import numpy as np
 
-from common import se2
+from bench.closed_loop import ClosedLoop
 from common.gp import SEHyper, fit_hyperparameters, heuristic_hyper, hyper_bounds, log_marginal_likelihood
-from common.messages import TruthPose
-from common.robot import PRESETS
 from common.scenario import TerrainPatch
-from services.bridge.simulator import SimSample, Simulator
-from services.bridge.teach_driver import PurePursuitDriver, smooth_waypoints
-from services.controller.fl import FLGains
-from services.controller.tracker import PathTracker, TrackerLimits
-from services.localizer.pose_source import PoseSource, PoseSourceSettings
+from services.controller.experience import G_NAMES
+from services.localizer.pose_source import PoseSourceSettings
 
 DT = 0.1
 EVAL_MAX = 1000
@@ -71,100 +50,15 @@ TERRAIN = [
     TerrainPatch(kind="slip", center=(15.0, 2.0), radius_m=4.0, traction=0.7),
 ]
 SPEEDS = (0.3, 1.0, 0.5, 0.8, 0.4, 0.9, 0.6, 0.7)   # interleaved so that a few trials span the range
-INPUT_NAMES = ("x", "y", "theta", "v_act_km2", "w_act_km2", "v_cmd_km1", "w_cmd_km1", "v_cmd_km2", "w_cmd_km2")
-OUTPUT_NAMES = ("g_x_body", "g_y_body", "g_theta")
 
 
 def _log(msg: str) -> None:
     print(f"[bench.gp] {msg}", file=sys.stderr, flush=True)
 
 
-def _truth(s: SimSample, trial: int) -> TruthPose:
-    return TruthPose(stamp_s=s.stamp_s, tick=s.tick, trial=trial, x_world_m=s.x, y_world_m=s.y,
-                     theta_world_rad=s.theta, v_mps=s.v_ground, w_radps=s.w_ground, lateral_slip_mps=s.v_lateral)
-
-
-class DisturbanceData:
-    """Teach once, then repeat with the FL tracker and collect (a, g) pairs (see the module docstring)."""
-
-    def __init__(self, seed: int, preset: str = "husky"):
-        self.seed = seed
-        self.robot = PRESETS[preset]
-        self.sim = Simulator(self.robot, list(TERRAIN), seed, period_s=DT)
-        self.ref = smooth_waypoints(ROUTE, 3.0, False)
-        self.source = PoseSource(PoseSourceSettings(), np.random.default_rng([seed, 11]))
-        self.path = None
-
-    def teach(self, speed: float = 0.4) -> None:
-        r = self.robot
-        drv = PurePursuitDriver(self.ref, speed, r.max_curvature, r.w_max_radps)
-        self.sim.reset(drv.start_pose, 0)
-        self.source.start_teach(0)
-        s = self.sim.sample()
-        for _ in range(100000):
-            self.source.on_truth(_truth(s, 0), "route")
-            v, w = drv.command((s.x, s.y, s.theta))
-            if drv.done and abs(s.v_ground) < 1e-3:
-                break
-            self.sim.command(v, w)
-            s = self.sim.step()
-        self.sim.end_trial()
-        self.path = self.source.finish_teach("route", loop=False, taught_by="bench.gp")
-
-    def repeat(self, trial: int, speed: float, max_steps: int = 20000) -> tuple[np.ndarray, np.ndarray]:
-        """One repeat at `speed`; returns its observations A (n, 9) and G (n, 3)."""
-        path, r = self.path, self.robot
-        self.sim.reset(self.ref[0], trial)
-        self.source.start_repeat(path, trial, np.random.default_rng([self.seed, 12, trial]))
-        tracker = PathTracker(path, FLGains(), TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature),
-                              speed_mps=speed)
-        s = self.sim.sample()
-        # per tick: (world pose estimate or None, vertex-relative estimate, command, tracking?)
-        hist: deque = deque(maxlen=3)
-        A, G = [], []
-        for _ in range(max_steps):
-            loc = self.source.on_truth(_truth(s, trial), "route")
-            d = tracker.step(s.stamp_s, loc)
-            if loc.status == "ok":
-                T_vr = np.asarray(loc.T_vertex_robot, dtype=float)
-                T_w = se2.compose(path.poses[loc.vertex], T_vr)
-            else:
-                T_vr = T_w = None
-            hist.append((T_w, T_vr, (d.v_mps, d.w_radps), d.state == "tracking"))
-            if len(hist) == 3:
-                obs = self._observation(hist)
-                if obs is not None:
-                    A.append(obs[0])
-                    G.append(obs[1])
-            if d.state == "finished" and abs(s.v_ground) < 1e-3:
-                break
-            self.sim.command(d.v_mps, d.w_radps)
-            s = self.sim.step()
-        self.sim.end_trial()
-        return np.asarray(A, dtype=float).reshape(-1, 9), np.asarray(G, dtype=float).reshape(-1, 3)
-
-    @staticmethod
-    def _observation(hist) -> tuple[np.ndarray, np.ndarray] | None:
-        (w2, _, u2, trk2), (w1, vr1, u1, trk1), (w0, _, _, _) = hist
-        if w2 is None or w1 is None or w0 is None or not (trk1 and trk2):
-            return None
-        # actual velocities at k-2 from the estimates at k-2 and k-1 (thesis 5.3.1)
-        v_act = math.hypot(w1[0] - w2[0], w1[1] - w2[1]) / DT
-        w_act = float(se2.wrap(w1[2] - w2[2])) / DT
-        a = np.array([vr1[0], vr1[1], vr1[2], v_act, w_act, u1[0], u1[1], u2[0], u2[1]])
-        # g = x_k - f(x_{k-1}, u_{k-1}) (eq. 5.17, 5.26), in the body frame at k-1
-        th = w1[2]
-        c, s = math.cos(th), math.sin(th)
-        dx, dy = w0[0] - w1[0], w0[1] - w1[1]
-        g = np.array([c * dx + s * dy - DT * u1[0],
-                      -s * dx + c * dy,
-                      float(se2.wrap(w0[2] - w1[2])) - DT * u1[1]])
-        return a, g
-
-
 def generate(n: int, seed: int, speeds=SPEEDS) -> tuple[np.ndarray, np.ndarray, dict]:
     """N disturbance observations (A (n, 9), G (n, 3)) and a summary of how they were made."""
-    data = DisturbanceData(seed)
+    data = ClosedLoop(ROUTE, TERRAIN, preset="husky", seed=seed, loc=PoseSourceSettings(), period_s=DT)
     t0 = time.perf_counter()
     data.teach()
     _log(f"taught a {data.path.length_m:.1f} m route ({len(data.path)} vertices) in {time.perf_counter() - t0:.1f} s")
@@ -173,7 +67,7 @@ def generate(n: int, seed: int, speeds=SPEEDS) -> tuple[np.ndarray, np.ndarray, 
         speed = speeds[trial % len(speeds)]
         trial += 1
         t1 = time.perf_counter()
-        A, G = data.repeat(trial, speed)
+        A, G = data.repeat(trial, speed).arrays()
         As.append(A)
         Gs.append(G)
         total += len(A)
@@ -262,7 +156,7 @@ def _run(args, blas_threads: int | None) -> int:
     lml_dims = [log_marginal_likelihood(XE, YE[:, j], h) for j, h in enumerate(fit.hypers)]
     lml = float(sum(lml_dims))
     _log(f"project: {fit_s:.2f} s on {fit.n_used} points, LML on E = {lml:.3f} ({[round(v, 3) for v in lml_dims]})")
-    for name, h in zip(OUTPUT_NAMES, fit.hypers):
+    for name, h in zip(G_NAMES, fit.hypers):
         _log(f"  {name}: {h}")
 
     sk_fit_s = sk_lml = gap = None

@@ -31,9 +31,9 @@ def test_disturbance_observations_follow_eq_5_17():
     A, G, info = bench_gp.generate(200, seed=3, speeds=(0.5, 1.0))
     assert A.shape == (200, 9) and G.shape == (200, 3)
     assert np.all(np.isfinite(A)) and np.all(np.isfinite(G))
-    # commanded speeds are the trial speeds (or the gentle stop at the end), never above them
-    assert A[:, 5].max() <= 1.0 + 1e-9 and A[:, 5].min() > 0.0
-    # the robot stays near the route: small vertex-relative offsets
+    # commanded speeds are the trial speeds, the gentle stop at the end, or 0 while rolling to a halt
+    assert A[:, 5].max() <= 1.0 + 1e-9 and A[:, 5].min() >= 0.0
+    # the robot stays near the route: small lateral errors
     assert np.abs(A[:, 1]).max() < 0.5
     # one-step residuals are centimetres, not metres (dt = 0.1 s)
     assert np.abs(G[:, :2]).max() < 0.1 and np.abs(G[:, 2]).max() < 0.2

@@ -11,7 +11,7 @@ from common.scenario import TerrainPatch
 from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.tracker import PathTracker, TrackerLimits
 from services.localizer.pose_source import PoseSourceSettings
-from tests.closed_loop import ClosedLoop
+from bench.closed_loop import ClosedLoop
 
 STRAIGHT_THEN_ARC = [[0, 0], [12, 0], [20, 8], [20, 16]]   # 12 m straight, then 3 m-radius arcs
 SLOPE = TerrainPatch(kind="side_slope", center=(8.0, 0.0), radius_m=5.0, slope_deg=12.0, downhill_deg=-90.0)

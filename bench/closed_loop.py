@@ -1,5 +1,6 @@
 """Teach and repeat with the pure cores of bridge, localizer and controller wired in one process:
-the same code the services run, without the bus, for fast deterministic unit tests."""
+the same code the services run, without the bus. Fast and deterministic, for unit tests and for
+generating realistic experience data in benchmarks."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -11,6 +12,8 @@ from common.path import Path
 from common.robot import PRESETS, RobotParams
 from services.bridge.simulator import SimSample, Simulator
 from services.bridge.teach_driver import PurePursuitDriver, smooth_waypoints
+from services.controller.core import ControllerCore
+from services.controller.experience import Observation
 from services.controller.fl import FLGains
 from services.controller.tracker import PathTracker, TrackerLimits
 from services.localizer.pose_source import PoseSource, PoseSourceSettings
@@ -27,6 +30,12 @@ class RepeatResult:
     heading_rad: np.ndarray
     finished: bool
     steps: int
+    observations: list[Observation]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """The trial's disturbance observations as A (n, 9) and G (n, 3)."""
+        return (np.array([o.a for o in self.observations], dtype=float).reshape(-1, 9),
+                np.array([o.g for o in self.observations], dtype=float).reshape(-1, 3))
 
     @property
     def max_lateral(self) -> float:
@@ -35,9 +44,12 @@ class RepeatResult:
 
 class ClosedLoop:
     def __init__(self, waypoints, terrain=(), preset: str | RobotParams = "husky", seed: int = 1,
-                 teach_speed: float = 0.4, loop: bool = False, loc: PoseSourceSettings | None = None):
+                 teach_speed: float = 0.4, loop: bool = False, loc: PoseSourceSettings | None = None,
+                 period_s: float = 0.1):
         self.robot = PRESETS[preset] if isinstance(preset, str) else preset
-        self.sim = Simulator(self.robot, list(terrain), seed)
+        self.period_s = period_s
+        self.seed = seed
+        self.sim = Simulator(self.robot, list(terrain), seed, period_s=period_s)
         self.ref = smooth_waypoints(waypoints, 3.0, loop)
         self.loop = loop
         self.source = PoseSource(loc or PoseSourceSettings(noise_m=0.0, noise_heading_rad=0.0),
@@ -64,14 +76,17 @@ class ClosedLoop:
     def repeat(self, trial: int, speed: float, gains: FLGains = FLGains(), max_steps: int = 20000) -> RepeatResult:
         path = self.path
         self.sim.reset(self.ref[0], trial)
-        self.source.start_repeat(path, trial, np.random.default_rng([trial]))
+        self.source.start_repeat(path, trial, np.random.default_rng([self.seed, 12, trial]))
         r = self.robot
         tracker = PathTracker(path, gains, TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature),
                               speed_mps=speed)
+        core = ControllerCore(path, tracker, self.period_s)
         s = self.sim.sample()
-        lat, head, hint, finished = [], [], 0, False
+        lat, head, hint, finished, observations = [], [], 0, False, []
         for n in range(max_steps):
-            d = tracker.step(s.stamp_s, self.source.on_truth(truth_of(s, trial), "route"))
+            d, obs = core.step(s.stamp_s, s.tick, self.source.on_truth(truth_of(s, trial), "route"))
+            if obs is not None:
+                observations.append(obs)
             pr = path.project((s.x, s.y, s.theta), hint)
             hint = pr.vertex
             lat.append(pr.lateral_m)
@@ -83,4 +98,4 @@ class ClosedLoop:
             self.sim.command(d.v_mps, d.w_radps)
             s = self.sim.step()
         self.sim.end_trial()
-        return RepeatResult(np.array(lat), np.array(head), finished, n + 1)
+        return RepeatResult(np.array(lat), np.array(head), finished, n + 1, observations)
