@@ -11,11 +11,9 @@ always terminated in a `finally`. The last stdout line is one JSON object with t
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import queue
-import signal
 import statistics
 import struct
 import subprocess
@@ -27,6 +25,7 @@ from typing import Callable
 
 import zenoh
 
+from bench.report import run_and_print
 from common.bus import AliveWatcher, install_stop_handlers, open_session, setup_logging, zenoh_config
 from common.codec import encode
 from common.lifecycle import PARENT_ENV
@@ -229,10 +228,6 @@ def run_bench(args: argparse.Namespace) -> dict:
             **summary("pingpong", p_rtts), "pingpong_timeouts": p_lost}
 
 
-def _interrupt(_signum, _frame):
-    raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="lbc bench bus", description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=2000, help="round trips per measurement")
@@ -255,23 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.payload_bytes is not None and args.payload_bytes < 8:
         parser.error("--payload-bytes must be >= 8 (the sequence number)")
 
-    # SIGTERM unwinds like Ctrl-C so the children are still stopped
-    in_main = threading.current_thread() is threading.main_thread()
-    prev = signal.signal(signal.SIGTERM, _interrupt) if in_main else None
-    try:
-        result = run_bench(args)
-    except KeyboardInterrupt:
-        log.warning("interrupted")
-        return 130
-    except (RuntimeError, TimeoutError, zenoh.ZError) as exc:
-        log.error("bench failed: %s", exc)
-        return 1
-    finally:
-        if in_main:
-            signal.signal(signal.SIGTERM, prev)
-    sys.stdout.write(json.dumps(result) + "\n")
-    sys.stdout.flush()
-    return 0
+    return run_and_print(lambda: run_bench(args))
 
 
 if __name__ == "__main__":

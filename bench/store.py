@@ -32,12 +32,9 @@ Progress goes to stderr; the last stdout line is one JSON object. Every child is
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
-import signal
 import statistics
-import sys
 import tempfile
 import threading
 import time
@@ -49,6 +46,7 @@ import numpy as np
 import zenoh
 
 from common import keys
+from bench.report import run_and_print
 from common.bus import AliveWatcher, Node, query_one, setup_logging
 from common.codec import DecodeError, decode
 from common.config import dump_toml
@@ -324,10 +322,6 @@ def run_bench(args: argparse.Namespace) -> dict:
             "c_vertex": bins_cfg.c_vertex, "c_velocity": bins_cfg.c_velocity, "seed": args.seed}
 
 
-def _interrupt(_signum, _frame):
-    raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="lbc bench store", description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=25000, help="experiences to ingest")
@@ -345,23 +339,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.n < 1 or args.queries < 1 or args.warmup < 0 or args.batch < 1 or args.vertices < 11:
         parser.error("--n, --queries and --batch must be >= 1, --warmup >= 0 and --vertices >= 11")
 
-    # SIGTERM unwinds like Ctrl-C so the children are still stopped
-    in_main = threading.current_thread() is threading.main_thread()
-    prev = signal.signal(signal.SIGTERM, _interrupt) if in_main else None
-    try:
-        result = run_bench(args)
-    except KeyboardInterrupt:
-        log.warning("interrupted")
-        return 130
-    except (RuntimeError, TimeoutError, ConnectionError, LookupError, zenoh.ZError) as exc:
-        log.error("bench failed: %s", exc)
-        return 1
-    finally:
-        if in_main:
-            signal.signal(signal.SIGTERM, prev)
-    sys.stdout.write(json.dumps(result) + "\n")
-    sys.stdout.flush()
-    return 0
+    return run_and_print(lambda: run_bench(args))
 
 
 if __name__ == "__main__":
