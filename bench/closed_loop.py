@@ -15,6 +15,7 @@ from services.bridge.teach_driver import PurePursuitDriver, smooth_waypoints
 from services.controller.core import ControllerCore
 from services.controller.experience import Observation
 from services.controller.fl import FLGains
+from services.controller.laws import FLLaw, SteeringLaw
 from services.controller.tracker import PathTracker, TrackerLimits
 from services.localizer.pose_source import PoseSource, PoseSourceSettings
 
@@ -73,13 +74,15 @@ class ClosedLoop:
         self.path = self.source.finish_teach("route", loop=self.loop, taught_by="test")
         return self.path
 
-    def repeat(self, trial: int, speed: float, gains: FLGains = FLGains(), max_steps: int = 20000) -> RepeatResult:
+    def repeat(self, trial: int, speed: float, law: SteeringLaw | None = None, max_steps: int = 20000,
+               ic_vertices: int = 0) -> RepeatResult:
         path = self.path
         self.sim.reset(self.ref[0], trial)
         self.source.start_repeat(path, trial, np.random.default_rng([self.seed, 12, trial]))
         r = self.robot
-        tracker = PathTracker(path, gains, TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature),
-                              speed_mps=speed)
+        tracker = PathTracker(path, law or FLLaw(FLGains()),
+                              TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature), speed_mps=speed,
+                              ic_vertices=ic_vertices)
         core = ControllerCore(path, tracker, self.period_s)
         s = self.sim.sample()
         lat, head, hint, finished, observations = [], [], 0, False, []

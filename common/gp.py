@@ -311,6 +311,32 @@ class GaussianProcess:
         Xc = np.ascontiguousarray(X - self.center)
         self._Xc1 = np.column_stack([np.ones(self.n), Xc])   # [1, x]: sum and first moment in one product
         self._dims = [_Dim(Xc, np.ascontiguousarray(Y[:, j]), h) for j, h in enumerate(hypers)]
+        self._stack = None
+
+    def mean_and_grad(self, x) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean (d,) and its gradient (d, p) at ONE query point, all output dimensions in a
+        handful of stacked numpy operations: the NMPC rolls its horizon out point by point, so per-call
+        overhead, not flops, is what counts there."""
+        q = np.asarray(x, dtype=float) - self.center
+        if self.n == 0:
+            return np.zeros(self.d), np.zeros((self.d, self.p))
+        if self._stack is None:
+            dims = self._dims
+            self._stack = (np.stack([c.B for c in dims]), np.stack([c.B2 for c in dims]),
+                           np.stack([c.inv_ell for c in dims]), np.stack([c.inv_ell2 for c in dims]),
+                           np.array([c.sf2 for c in dims]), np.stack([c.alpha_aug for c in dims]))
+        B, B2, inv_ell, inv_ell2, sf2, alpha_aug = self._stack
+        A = q * inv_ell                                                     # (d, p)
+        k = np.einsum("dnp,dp->dn", B, A)
+        k *= -2.0
+        k += B2
+        k += np.einsum("dp,dp->d", A, A)[:, None]
+        k *= -0.5
+        np.exp(k, out=k)
+        k *= sf2[:, None]                                                  # (d, N)
+        r = np.einsum("dn,dnk->dk", k, alpha_aug)                          # [k alpha, k (alpha x)]
+        mean = r[:, 0]
+        return mean, (r[:, 1:] - q * mean[:, None]) * inv_ell2
 
     def _prep(self, Xq) -> np.ndarray:
         Xq = np.asarray(Xq, dtype=float)
@@ -431,12 +457,29 @@ def _random_start(rng: np.random.Generator, X, y) -> np.ndarray:
     return np.concatenate([log_ell, [log_sf, log_sn]])
 
 
-def _optimize(Xc: np.ndarray, y: np.ndarray, theta0: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, float]:
+def _lml_blocks(blocks: list[tuple[np.ndarray, np.ndarray]], theta: np.ndarray, with_grad: bool):
+    """Sum of independent LMLs: the data as the controller uses it, one local window at a time."""
+    if len(blocks) == 1:
+        return _lml(blocks[0][0], blocks[0][1], theta, with_grad)
+    total, grad = 0.0, np.zeros(len(theta))
+    for Xb, yb in blocks:
+        out = _lml(Xb, yb, theta, with_grad)
+        f, g = out if with_grad else (out, None)
+        if not math.isfinite(f):
+            return (-math.inf, np.zeros(len(theta))) if with_grad else -math.inf
+        total += f
+        if with_grad:
+            grad += g
+    return (total, grad) if with_grad else total
+
+
+def _optimize(blocks: list[tuple[np.ndarray, np.ndarray]], theta0: np.ndarray,
+              bounds: np.ndarray) -> tuple[np.ndarray, float]:
     """One L-BFGS-B run on -LML from theta0; returns the (clipped) optimum and its LML (or -inf)."""
     big = 1e30
 
     def objective(theta):
-        f, g = _lml(Xc, y, theta, True)
+        f, g = _lml_blocks(blocks, theta, True)
         if not math.isfinite(f):
             return big, np.zeros_like(theta)
         return -f, -g
@@ -449,15 +492,16 @@ def _optimize(Xc: np.ndarray, y: np.ndarray, theta0: np.ndarray, bounds: np.ndar
         theta = theta0
     if not np.all(np.isfinite(theta)):
         theta = theta0
-    f = _lml(Xc, y, theta, False)
-    f0 = _lml(Xc, y, theta0, False)
+    f = _lml_blocks(blocks, theta, False)
+    f0 = _lml_blocks(blocks, theta0, False)
     if f0 > f:  # the optimizer never makes things worse than its start
         return theta0, f0
     return theta, f
 
 
 def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, max_points: int = 1000,
-                        init: list[SEHyper] | None = None) -> FitResult:
+                        init: list[SEHyper] | None = None, groups: np.ndarray | None = None,
+                        min_lengthscales: np.ndarray | None = None) -> FitResult:
     """Maximize the log marginal likelihood of each output dimension separately (thesis 5.2.3).
 
     Per output dimension: 1 + `restarts` L-BFGS-B runs on the log hyperparameters within
@@ -466,6 +510,18 @@ def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, ma
     `n_restarts_optimizer`). With N > `max_points`, all dimensions are fitted on one uniformly random
     subsample of `max_points` rows drawn with `rng`. Rows with a non-finite entry are dropped. Never
     raises on ill-conditioned data: a candidate whose kernel cannot be factorized scores -inf.
+
+    `min_lengthscales` (p,) raises the lower bounds of the lengthscales to a physical floor: how fast
+    the disturbance can possibly change with each input. Closed-loop data are narrow (a robot that
+    tracks well stays within centimetres of its route), and the likelihood alone then happily fits
+    lengthscales far below any physical scale, which a controller that queries the model off its data
+    exploits.
+
+    `groups` (one label per row) fits the model as it will be used when predictions come from local
+    windows of the data (thesis 5.3.2): the objective is the sum of the LMLs of the groups, each an
+    independent GP, and the subsample keeps whole groups. A pooled fit would also have to explain
+    differences *between* places with the other inputs, which in closed-loop data are correlated
+    with the place (the controller steers hardest where the disturbance is largest).
     """
     t0 = time.perf_counter()
     X, Y = _clean_xy(X, Y)
@@ -477,16 +533,29 @@ def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, ma
     restarts = max(0, int(restarts))
     if init is not None and len(init) != d:
         raise ValueError(f"init has {len(init)} hyperparameter sets for {d} output dimensions")
+    labels = None if groups is None else np.asarray(groups)[keep]
     if max_points > 0 and n > max_points:
-        idx = np.sort(rng.choice(n, size=int(max_points), replace=False))
+        if labels is None:
+            idx = np.sort(rng.choice(n, size=int(max_points), replace=False))
+        else:  # whole groups, in random order, until max_points rows
+            order = rng.permutation(np.unique(labels))
+            sizes = np.array([np.count_nonzero(labels == g) for g in order])
+            chosen = order[: max(1, int(np.searchsorted(np.cumsum(sizes), max_points, side="right")))]
+            idx = np.flatnonzero(np.isin(labels, chosen))
         X, Y = X[idx], Y[idx]
+        labels = None if labels is None else labels[idx]
         n = len(X)
     Xc = X - X.mean(axis=0) if n else X
+    members = [np.arange(n)] if labels is None else [np.flatnonzero(labels == g) for g in np.unique(labels)]
     hypers: list[SEHyper] = []
     lmls: list[float] = []
     for j in range(d):
         y = np.ascontiguousarray(Y[:, j])
         bounds = hyper_bounds(Xc, y)
+        if min_lengthscales is not None:
+            floor = np.log(np.maximum(np.asarray(min_lengthscales, dtype=float), 1e-12))
+            bounds[:p, 0] = np.maximum(bounds[:p, 0], floor)
+            bounds[:p, 1] = np.maximum(bounds[:p, 1], bounds[:p, 0])
         first = init[j] if init is not None else heuristic_hyper(Xc, y)
         if first.p != p:
             raise ValueError(f"init[{j}] has {first.p} lengthscales for {p} inputs")
@@ -496,8 +565,9 @@ def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, ma
             hypers.append(first)
             lmls.append(0.0)
             continue
+        blocks = [(Xc[m] - Xc[m].mean(axis=0), y[m]) for m in members]
         for theta0 in starts:
-            theta, f = _optimize(Xc, y, theta0, bounds)
+            theta, f = _optimize(blocks, theta0, bounds)
             if f > best_f:
                 best_theta, best_f = theta, f
         hypers.append(SEHyper.from_log(best_theta))

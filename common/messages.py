@@ -131,6 +131,10 @@ class ControllerStatus(Message):
     experiences_pending: int
     window_experiences: int
     hyper_version: int
+    w_ff_radps: float                 # ILC feedforward of this step (0 for other laws)
+    pred_x_m: list[float]             # predicted poses over the horizon (NMPC), in the route's frame
+    pred_y_m: list[float]
+    pred_theta_rad: list[float]
 
 
 @dataclass(frozen=True, kw_only=True)

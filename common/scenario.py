@@ -85,8 +85,10 @@ class TerrainPatch:
 @dataclass(frozen=True, kw_only=True)
 class LocalizationSection:
     source: Literal["vision", "pose"] = "pose"
-    noise_m: float = 0.01
+    noise_m: float = 0.01           # std of the (slowly wandering) position error
     noise_heading_deg: float = 0.3
+    noise_tau_s: float = 1.0        # its correlation time
+    jitter_m: float = 0.002         # independent frame-to-frame position error
     delay_s: float = 0.0
     dropout_prob: float = 0.0       # chance per tick that a dropout starts
     dropout_s: float = 0.3          # length of each dropout
@@ -95,12 +97,36 @@ class LocalizationSection:
     jumps: list[tuple[float, float, float]] = field(default_factory=list)
 
     def __post_init__(self):
-        if self.noise_m < 0 or self.noise_heading_deg < 0 or self.delay_s < 0 or self.dropout_s < 0:
-            raise ValueError("noise, delay and dropout lengths must be >= 0")
+        if min(self.noise_m, self.noise_heading_deg, self.noise_tau_s, self.jitter_m, self.delay_s,
+               self.dropout_s) < 0:
+            raise ValueError("noise, jitter, correlation time, delay and dropout lengths must be >= 0")
         if not 0.0 <= self.dropout_prob <= 1.0:
             raise ValueError("dropout_prob must be in [0, 1]")
         if any(length <= 0 for _, length, _ in self.jumps):
             raise ValueError("jumps: each [at_m, length_m, lateral_m] needs length_m > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ILCSection:
+    """[controller.ilc]: eq. 3.14-3.16 (gains in rad/s per m and rad/s, lookahead in vertices)."""
+    gamma_L: float = 0.8
+    gamma_H: float = 0.4
+    gamma_u: float = 1.0
+    lookahead: int = 4
+    ic_vertices: int = 8
+
+
+@dataclass(frozen=True, kw_only=True)
+class NMPCSection:
+    """[controller.nmpc]: cost weights (eq. 5.16) and solver settings; the horizon is controller.horizon."""
+    q_along: float = 1.0
+    q_lat: float = 40.0
+    q_head: float = 10.0
+    r_w: float = 0.2
+    r_dw: float = 1.0
+    q_terminal: float = 100.0
+    lookahead_m: float = 1.5
+    max_iter: int = 10
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,6 +138,8 @@ class ControllerSection:
     curvature_feedforward: bool = True
     loc_timeout_s: float = 0.5      # stop when the newest estimate is older than this
     stop_decel_mps2: float = 0.4    # gentle deceleration into the end of the route
+    ilc: ILCSection = field(default_factory=ILCSection)
+    nmpc: NMPCSection = field(default_factory=NMPCSection)
 
     def __post_init__(self):
         if self.horizon < 1:

@@ -4,9 +4,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from common.config import dump_toml
+from common.typecheck import to_dict
 from common.scenario import Scenario
 from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
-from services.controller.config import ControllerConfig, FLConfig, LimitsConfig, StoreClientConfig
+from services.controller.config import (ControllerConfig, FLConfig, ILCConfig, LimitsConfig, NMPCConfig,
+                                       StoreClientConfig)
 from services.gp_store.config import BinConfig, FitConfig, StoreConfig
 from services.localizer.config import LocalizerConfig, PoseSourceConfig
 
@@ -25,7 +27,8 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
     localizer = LocalizerConfig(
         robot_name=robot, source=loc.source, seed=sc.seed, data_dir=str(data_dir), period_s=sc.sim.period_s,
         vertex_spacing_m=sc.path.vertex_spacing_m,
-        pose=PoseSourceConfig(noise_m=loc.noise_m, noise_heading_deg=loc.noise_heading_deg, delay_s=loc.delay_s,
+        pose=PoseSourceConfig(noise_m=loc.noise_m, noise_heading_deg=loc.noise_heading_deg,
+                              noise_tau_s=loc.noise_tau_s, jitter_m=loc.jitter_m, delay_s=loc.delay_s,
                               dropout_prob=loc.dropout_prob, dropout_s=loc.dropout_s, jumps=list(loc.jumps)))
     ctl = sc.controller
     controller = ControllerConfig(
@@ -34,8 +37,11 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         limits=LimitsConfig(v_max_mps=rp.v_max_mps, w_max_radps=rp.w_max_radps,
                             max_curvature_per_m=rp.max_curvature if rp.drive == "ackermann" else 0.0),
         fl=FLConfig(gamma1=ctl.fl_gamma1, gamma2=ctl.fl_gamma2, curvature_feedforward=ctl.curvature_feedforward),
+        ilc=ILCConfig(**to_dict(ctl.ilc)),
+        nmpc=NMPCConfig(horizon=ctl.horizon, **to_dict(ctl.nmpc)),
         store=StoreClientConfig(v_bin_mps=sc.store.v_bin_mps, c_vertex=sc.store.c_vertex,
-                                c_velocity=sc.store.c_velocity))
+                                c_velocity=sc.store.c_velocity),
+        data_dir=str(Path(data_dir) / "controller"))
     st = sc.store
     gp_store = StoreConfig(
         name="store1", db_path=str(Path(data_dir) / "experiences.db"), paths=["*"],

@@ -105,6 +105,7 @@ def test_database_survives_reopening_and_versions_hyperparameters(tmp_path):
     db.close()
     db = ExperienceDB(path)
     assert db.stats()[0]["retained"] == 20 and db.latest_hyper("p")["lml"] == [2.0]
-    A, G = db.all_of("p")
+    A, G, tiles = db.all_of("p")
     assert A.shape == (20, 9) and G[7, 0] == pytest.approx(0.007)
+    assert len(set(tiles.tolist())) == 2   # vertices 0..19 in tiles of 2 * 5 + 1 vertices
     assert [e.seq for _, src, e in db.experiences("p", limit=5)] == [0, 1, 2, 3, 4]

@@ -9,6 +9,7 @@ from common.messages import LocState
 from common.path import Path
 from common.scenario import TerrainPatch
 from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.laws import FLLaw
 from services.controller.tracker import PathTracker, TrackerLimits
 from services.localizer.pose_source import PoseSourceSettings
 from bench.closed_loop import ClosedLoop
@@ -82,7 +83,7 @@ def loc(t, x=1.0, y=0.05, status="ok", capture=None):
 
 
 def test_waits_for_first_estimate_then_tracks():
-    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=0.5)
+    tr = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=0.5)
     d = tr.step(0.0, loc(0.0, status="initializing"))
     assert d.state == "waiting" and d.v_mps == 0.0
     d = tr.step(0.1, loc(0.1))
@@ -90,7 +91,7 @@ def test_waits_for_first_estimate_then_tracks():
 
 
 def test_holds_through_short_dropout_and_stops_when_stale():
-    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=0.5, loc_timeout_s=0.5)
+    tr = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=0.5, loc_timeout_s=0.5)
     d0 = tr.step(1.0, loc(1.0))
     d = tr.step(1.2, loc(1.2, status="dropout"))
     assert d.state == "holding" and (d.v_mps, d.w_radps) == (d0.v_mps, d0.w_radps)
@@ -101,20 +102,20 @@ def test_holds_through_short_dropout_and_stops_when_stale():
 
 
 def test_delayed_estimate_counts_its_age_from_capture():
-    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=0.5, loc_timeout_s=0.5)
+    tr = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=0.5, loc_timeout_s=0.5)
     d = tr.step(2.0, loc(2.0, capture=1.4))
     assert d.state == "stopped" and d.loc_age_s == pytest.approx(0.6)
 
 
 def test_stops_at_once_when_lost():
-    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=0.5)
+    tr = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=0.5)
     tr.step(1.0, loc(1.0))
     d = tr.step(1.1, loc(1.1, status="lost"))
     assert d.state == "stopped" and d.v_mps == 0.0 and "lost" in d.reason
 
 
 def test_slows_into_the_end_and_finishes():
-    tr = PathTracker(PATH, FLGains(), LIMITS, speed_mps=1.0, stop_decel_mps2=0.4)
+    tr = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=1.0, stop_decel_mps2=0.4)
     assert tr.step(0.0, loc(0.0, x=2.0, y=0.0)).v_mps == pytest.approx(1.0)
     near = tr.step(0.1, loc(0.1, x=9.5, y=0.0)).v_mps
     assert 0.0 < near < 0.6

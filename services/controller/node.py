@@ -11,6 +11,9 @@ import math
 import queue
 import threading
 import time
+from pathlib import Path as FsPath
+
+import numpy as np
 
 from common import keys
 from common.bus import Node, query_one
@@ -19,12 +22,17 @@ from common.messages import Clock, ControllerStatus, LocState, RouteMsg, Velocit
 from common.path import Path
 from common.service import Control, Service, service_main
 from common.store_client import ExperienceOutbox, WindowCache
+from common.typecheck import to_dict
 from services.controller.config import ControllerConfig
 from services.controller.core import ControllerCore
 from services.controller.fl import FLGains
+from services.controller.ilc import ILCGains, ILCLaw, ILCMemory
+from services.controller.laws import FLLaw, SteeringLaw
+from services.controller.local_model import LocalModels
+from services.controller.nmpc import LBNMPCLaw, NMPCSettings
 from services.controller.tracker import PathTracker, TrackerLimits
 
-AVAILABLE_ALGORITHMS = ("fl",)
+AVAILABLE_ALGORITHMS = ("fl", "ilc", "lb-nmpc")
 
 
 class ControllerService(Service):
@@ -39,6 +47,9 @@ class ControllerService(Service):
         r = cfg.robot_name
         self.k_cmd, self.k_status = keys.cmd_vel(r), keys.ctrl_status(r)
         self.core: ControllerCore | None = None
+        self.ilc: ILCMemory | None = None
+        self.models: LocalModels | None = None
+        self.learning = True
         self.speed_mps = 0.0
         self.trial = 0
         self.path_id = ""
@@ -69,8 +80,13 @@ class ControllerService(Service):
                 path = Path.from_msg(msg)
             except (LookupError, ValueError) as exc:
                 return self.reply(ctl, False, f"cannot load route {req.path_id}: {exc}")
-            tracker = PathTracker(path, self.gains, self.limits, speed_mps=req.speed_mps,
-                                  loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2)
+            self.learning = req.learning
+            try:
+                law, ic_vertices = self._make_law(req.path_id, path)
+            except (OSError, ValueError) as exc:
+                return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
+            tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps, loc_timeout_s=self.cfg.loc_timeout_s,
+                                  stop_decel_mps2=self.cfg.stop_decel_mps2, ic_vertices=ic_vertices)
             self.core = ControllerCore(path, tracker, self.cfg.period_s)
             self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
             if self.cache is not None:
@@ -80,15 +96,51 @@ class ControllerService(Service):
                               f"with {self.cfg.algorithm}")
         if req.action == "stop":
             self.core = None
-            if self.outbox is None:
-                return self.reply(ctl, True, "idle")
-            # a sync point for the runner: everything this trial produced is stored once we answer
-            ok = self.outbox.wait_acked(self.cfg.store.ack_timeout_s)
-            return self.reply(ctl, True, f"idle; {self.outbox.acked} experiences acknowledged" if ok else
-                              f"idle; {self.outbox.pending} experiences not yet acknowledged by any store")
+            notes = [self._learn_ilc()] if self.ilc is not None else []
+            self.ilc = None
+            if self.outbox is not None:
+                # a sync point for the runner: everything this trial produced is stored once we answer
+                ok = self.outbox.wait_acked(self.cfg.store.ack_timeout_s)
+                notes.append(f"{self.outbox.acked} experiences acknowledged" if ok else
+                             f"{self.outbox.pending} experiences not yet acknowledged by any store")
+            return self.reply(ctl, True, "; ".join(["idle"] + notes))
         if req.action == "start":
             return self.reply(ctl, True, "")
         return self.reply(ctl, False, f"unsupported action {req.action}")
+
+    def _make_law(self, path_id: str, path: Path) -> tuple[SteeringLaw, int]:
+        """The steering law of the configured algorithm for a trial on `path`, and its eq. 3.16 m_ic."""
+        algo = self.cfg.algorithm
+        self.ilc, self.models = None, None
+        if algo == "fl":
+            return FLLaw(self.gains), 0
+        if algo == "ilc":
+            if not self.cfg.data_dir:
+                raise ValueError("ILC keeps its feedforward per route on disk: set data_dir")
+            self.ilc = ILCMemory.load(FsPath(self.cfg.data_dir) / "ilc", path_id, len(path))
+            return ILCLaw(self.gains, self.ilc), self.cfg.ilc.ic_vertices
+        n = self.cfg.nmpc
+        settings = NMPCSettings(horizon=n.horizon, q_along=n.q_along, q_lat=n.q_lat, q_head=n.q_head, r_w=n.r_w,
+                                r_dw=n.r_dw, q_terminal=n.q_terminal, lookahead_m=n.lookahead_m,
+                                max_iter=n.max_iter, tol=n.tol)
+        if self.cache is not None:
+            cache = self.cache
+
+            def window(vertex: int, speed: float):
+                data = cache.local(vertex, speed)
+                return data.A, data.G
+            # learning off: the same controller on its nominal model only
+            self.models = LocalModels(window, lambda: cache.hyper if self.learning else None,
+                                      n.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps)
+        return LBNMPCLaw(settings, self.cfg.period_s, self.models.model_for if self.models else (lambda ctx: None)), 0
+
+    def _learn_ilc(self) -> str:
+        """Eq. 3.14 after a trial, saved per route; nothing is learned when learning is off."""
+        if not self.learning:
+            return "ILC learning off: feedforward unchanged"
+        change = self.ilc.update(ILCGains(**to_dict(self.cfg.ilc)))
+        where = self.ilc.save(FsPath(self.cfg.data_dir) / "ilc")
+        return f"ILC feedforward updated (trial {self.ilc.trials}, largest change {change:.3f} rad/s), saved to {where}"
 
     # --- control loop ------------------------------------------------------------------------
     def on_message(self, key: str, msg: LocState) -> None:
@@ -133,19 +185,25 @@ class ControllerService(Service):
             self.outbox.flush()
         if self.cache is not None:
             self.cache.set_position(d.vertex, self.speed_mps)
-            window_n = len(self.cache.local(d.vertex, self.speed_mps).A)
-            hyper_version = self.cache.hyper.version if self.cache.hyper is not None else 0
+            if self.models is not None:   # the window the NMPC actually predicted with
+                window_n, hyper_version = self.models.last_n, self.models.last_version
+            else:
+                window_n = len(self.cache.local(d.vertex, self.speed_mps).A)
+                hyper_version = self.cache.hyper.version if self.cache.hyper is not None else 0
+        pred = d.predicted if d.predicted is not None else np.zeros((0, 3))
         self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
                                                       v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
         self.node.publish(self.k_status, ControllerStatus(
             stamp_s=now_s, tick=tick, trial=self.trial, algorithm=self.cfg.algorithm, state=d.state,
             reason=d.reason, path_id=self.path_id, vertex=d.vertex, distance_m=d.distance_m,
             lateral_m=d.lateral_m, heading_rad=d.heading_rad, v_cmd_mps=d.v_mps, w_cmd_radps=d.w_radps,
-            solve_ms=solve_ms, iterations=0, loc_age_s=min(d.loc_age_s, 1e6),
+            solve_ms=solve_ms, iterations=d.iterations, loc_age_s=min(d.loc_age_s, 1e6),
             rejected_msgs=self.node.decoder.rejected_total,
             experiences_sent=self.outbox.acked + self.outbox.pending if self.outbox else 0,
             experiences_pending=self.outbox.pending if self.outbox else 0,
-            window_experiences=window_n, hyper_version=hyper_version))
+            window_experiences=window_n, hyper_version=hyper_version,
+            w_ff_radps=float((d.info or {}).get("w_ff", 0.0)), pred_x_m=pred[:, 0].tolist(),
+            pred_y_m=pred[:, 1].tolist(), pred_theta_rad=pred[:, 2].tolist()))
 
     def close(self) -> None:
         if self.cache is not None:

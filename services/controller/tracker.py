@@ -1,18 +1,22 @@
-"""The controller's pure core: one call per control step, localization in, command and status out.
+"""The controller's tracking core: one call per control step, localization in, command and status out.
 
-It owns everything that is not the control law itself: waiting for the first estimate, holding the
-last command through a short dropout, stopping when localization is stale or lost, the speed
-profile (scheduled speed, robot limits, a gentle stop into the end of the route) and the end.
+It owns everything that is not the steering law itself: waiting for the first estimate, holding the
+last command through a short dropout, stopping when localization is stale or lost, the speed profile
+(scheduled speed, robot limits, a gentle stop into the end of the route), angular-rate limits
+(actuator and, for an Ackermann robot, the steering limit), the initial-condition smoothing of
+eq. 3.16, and the end of the route. The law (laws.py) chooses w.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from common import se2
 from common.messages import LocState
 from common.path import Path
-from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 
 
 @dataclass(frozen=True)
@@ -20,6 +24,9 @@ class TrackerLimits:
     v_max_mps: float
     w_max_radps: float
     max_curvature: float = math.inf   # Ackermann: tan(steer_max) / L
+
+    def w_limit(self, v: float) -> float:
+        return min(self.w_max_radps, abs(v) * self.max_curvature)
 
 
 @dataclass(frozen=True)
@@ -33,36 +40,49 @@ class Decision:
     lateral_m: float
     heading_rad: float
     loc_age_s: float
+    iterations: int = 0
+    predicted: np.ndarray | None = None
+    info: dict | None = None
 
 
 class PathTracker:
-    def __init__(self, path: Path, gains: FLGains, limits: TrackerLimits, *, speed_mps: float,
-                 loc_timeout_s: float = 0.5, stop_decel_mps2: float = 0.4):
+    def __init__(self, path: Path, law: SteeringLaw, limits: TrackerLimits, *, speed_mps: float,
+                 loc_timeout_s: float = 0.5, stop_decel_mps2: float = 0.4, ic_vertices: int = 0):
         self.path = path
-        self.gains = gains
+        self.law = law
         self.limits = limits
         self.speed_mps = min(speed_mps, limits.v_max_mps)
         self.loc_timeout_s = loc_timeout_s
         self.stop_decel = stop_decel_mps2
+        self.ic_vertices = ic_vertices
         self.finished = False
         self._last_ok: LocState | None = None
+        self._prev_pose: tuple[int, np.ndarray] | None = None   # (capture tick, pose) one estimate back
+        self._initial_error: tuple[float, float] | None = None
         self._last_cmd = (0.0, 0.0)
 
-    def scheduled_speed(self, vertex: int) -> float:
-        """Speed at a vertex: one fixed speed for now; per-vertex schedules plug in here."""
+    def scheduled_speed(self, distance_m: float) -> float:
+        """Speed at a place on the route: one fixed speed for now; per-vertex schedules plug in here."""
         return self.speed_mps
 
-    def route_errors(self, loc: LocState) -> tuple[float, float, float]:
-        """(along, lateral, heading) errors of an estimate, continuous along the route.
+    def speed_at(self, distance_m: float) -> float:
+        """What the robot is commanded at a distance along the route: the schedule, the robot's limit,
+        and a constant deceleration into the end of the route."""
+        remaining = max(self.path.length_m - distance_m, 0.0)
+        return min(self.scheduled_speed(distance_m), math.sqrt(2.0 * self.stop_decel * remaining) + 0.02,
+                   self.limits.v_max_mps)
+
+    def route_errors(self, loc: LocState) -> tuple[np.ndarray, float, float, float]:
+        """Pose in the route frame and its (distance, lateral, heading) errors, continuous along the route.
 
         The vertex frame's axis is the robot's heading when it was taught, which on a slope differs
         from the route's direction (the robot crabbed). Taking y in the nearest vertex frame would make
         the lateral error jump at every vertex change, so the lateral error is measured against the
         route polyline next to that vertex, the heading error against the interpolated taught heading.
         """
-        T_route_robot = se2.compose(self.path.poses[loc.vertex], loc.T_vertex_robot)
-        pr = self.path.project(T_route_robot, hint=loc.vertex)
-        return loc.T_vertex_robot[0], pr.lateral_m, pr.heading_rad
+        pose = se2.compose(self.path.poses[loc.vertex], loc.T_vertex_robot)
+        pr = self.path.project(pose, hint=loc.vertex)
+        return pose, pr.distance_m, pr.lateral_m, pr.heading_rad
 
     def step(self, now_s: float, loc: LocState | None) -> Decision:
         if loc is not None and loc.status == "ok":
@@ -74,8 +94,8 @@ class PathTracker:
             self._last_cmd = (0.0, 0.0)
             if last is None:
                 return Decision(0.0, 0.0, state, reason, 0, 0.0, 0.0, 0.0, age)
-            _, y, th = self.route_errors(last)
-            return Decision(0.0, 0.0, state, reason, last.vertex, last.distance_m, y, th, age)
+            _, dist, lat, head = self.route_errors(last)
+            return Decision(0.0, 0.0, state, reason, last.vertex, dist, lat, head, age)
 
         if self.finished:
             return stop("finished", "end of route reached")
@@ -87,22 +107,44 @@ class PathTracker:
             return stop("stopped", f"localization stale: newest estimate is {age:.2f} s old")
 
         vertex = last.vertex
-        x, y, th = self.route_errors(last)
+        pose, dist, lat, head = self.route_errors(last)
         if loc is not last:
             # short dropout: keep the last command, the robot is still within the timeout
             v, w = self._last_cmd
             return Decision(v, w, "holding", f"no fresh estimate ({loc.status if loc else 'none'}), "
-                            f"holding last command", vertex, last.distance_m, y, th, age)
+                            f"holding last command", vertex, dist, lat, head, age)
 
-        remaining = self.path.length_m - last.distance_m
-        if remaining <= 0.0 or (vertex == len(self.path) - 1 and x >= 0.0):
+        if dist >= self.path.length_m or (vertex == len(self.path) - 1 and last.T_vertex_robot[0] >= 0.0):
             self.finished = True
             return stop("finished", "end of route reached")
 
-        v = min(self.scheduled_speed(vertex), math.sqrt(2.0 * self.stop_decel * remaining) + 0.02,
-                self.limits.v_max_mps)
-        w = fl_angular_rate(v, y, th, float(self.path.curvature[vertex]), self.gains)
-        w_cap = min(self.limits.w_max_radps, abs(v) * self.limits.max_curvature)
-        w = max(-w_cap, min(w_cap, w))
+        prev_pose = None
+        if self._prev_pose is not None and self._prev_pose[0] == last.capture_tick - 1:
+            prev_pose = self._prev_pose[1]
+        self._prev_pose = (last.capture_tick, pose)
+        law_lat, law_head = self._smoothed(vertex, lat, head)
+        v = self.speed_at(dist)
+        ctx = StepContext(now_s=now_s, path=self.path, vertex=vertex, pose=pose, s_m=dist, e_lat_m=law_lat,
+                          e_head_rad=law_head, v_mps=v, speed_at=self.speed_at, prev_cmd=self._last_cmd,
+                          prev_pose=prev_pose, w_limit=self.limits.w_limit(v), w_limit_at=self.limits.w_limit)
+        res: LawResult = self.law.angular(ctx)
+        w = max(-ctx.w_limit, min(ctx.w_limit, res.w_radps))
         self._last_cmd = (v, w)
-        return Decision(v, w, "tracking", "", vertex, last.distance_m, y, th, age)
+        return Decision(v, w, "tracking", "", vertex, dist, lat, head, age, res.iterations, res.predicted, res.info)
+
+    def _smoothed(self, vertex: int, lat: float, head: float) -> tuple[float, float]:
+        """Eq. 3.16: over the first m_ic vertices the desired path blends from where the robot started
+        into the taught one, so a trial does not begin by fighting its initial offset."""
+        if self.ic_vertices <= 0:
+            return lat, head
+        if self._initial_error is None:
+            self._initial_error = (lat, head)
+        if vertex >= self.ic_vertices:
+            return lat, head
+        share = (self.ic_vertices - vertex) / self.ic_vertices
+        return lat - share * self._initial_error[0], head - share * self._initial_error[1]
+
+
+def fl_tracker(path: Path, gains, limits: TrackerLimits, **kw) -> PathTracker:
+    """The feedback-linearized tracker of eq. 3.5."""
+    return PathTracker(path, FLLaw(gains), limits, **kw)

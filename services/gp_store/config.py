@@ -17,6 +17,13 @@ class BinConfig:
             raise ValueError("v_bin_mps > 0, c_bin >= 1, c_vertex >= 0 and c_velocity >= 0 required")
 
 
+# How fast a disturbance can physically change with each input of a (experience.py A_NAMES): terrain
+# varies over metres along and across the route, wheel-ground effects over radians of heading error
+# and tenths of m/s or rad/s of motion. Closed-loop data are narrow, and without these floors the
+# likelihood picks lengthscales of centimetres that a controller, querying off the data, exploits.
+DEFAULT_MIN_LENGTHSCALES = [0.5, 1.0, 1.0, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
+
+
 @dataclass(frozen=True, kw_only=True)
 class FitConfig:
     restarts: int = 3
@@ -24,6 +31,12 @@ class FitConfig:
     seed: int = 0
     auto_after_trial: bool = True # fit when a robot ends a repeat on a route with new experiences
     min_new: int = 50             # ... and at least this many are new since the last fit
+    local_windows: bool = True    # likelihood of the local windows the controller uses (5.3.2)
+    min_lengthscales: list[float] = field(default_factory=lambda: list(DEFAULT_MIN_LENGTHSCALES))
+
+    def __post_init__(self):
+        if len(self.min_lengthscales) != 9 or min(self.min_lengthscales) < 0:
+            raise ValueError("min_lengthscales needs 9 values >= 0, one per input of a")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -153,11 +153,16 @@ class ExperienceDB:
                       np.array([r[1] for r in rows], dtype=int), _stack([r[2] for r in rows], A_DIM),
                       _stack([r[3] for r in rows], G_DIM))
 
-    def all_of(self, path_id: str) -> tuple[np.ndarray, np.ndarray]:
-        """Every retained experience of a route as (A, G), for hyperparameter fitting."""
+    def all_of(self, path_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every retained experience of a route as (A, G, window tile label), for hyperparameter
+        fitting: the tiles are disjoint windows of the size the controller uses (5.3.2)."""
         with self._rlock:
-            rows = self._rdb.execute("SELECT a, g FROM experiences WHERE path_id=? ORDER BY id", (path_id,)).fetchall()
-        return _stack([r[0] for r in rows], A_DIM), _stack([r[1] for r in rows], G_DIM)
+            rows = self._rdb.execute("SELECT a, g, vertex, speed_bin FROM experiences WHERE path_id=? ORDER BY id",
+                                     (path_id,)).fetchall()
+        p = self.policy
+        tiles = np.array([(r[2] // (2 * p.c_vertex + 1)) * 100_000 + (r[3] // (2 * p.c_velocity + 1)) for r in rows],
+                         dtype=np.int64)
+        return _stack([r[0] for r in rows], A_DIM), _stack([r[1] for r in rows], G_DIM), tiles
 
     def experiences(self, path_id: str, after_id: int = 0, limit: int = 5000) -> list[tuple[int, str, Experience]]:
         """Stored experiences as (row id, source, experience), in insertion order (for export)."""

@@ -251,7 +251,7 @@ class StoreService(Service):
         if state.running is not None:
             state.rerun = True  # fit again with what arrives meanwhile once this one is done
             return
-        A, G = self.db.all_of(path_id)
+        A, G, tiles = self.db.all_of(path_id)
         if len(A) == 0:
             for q in state.waiting:
                 q.reply_err(f"no experiences for {path_id}".encode())
@@ -266,8 +266,9 @@ class StoreService(Service):
                                                 initializer=die_with_parent, initargs=(os.getpid(),))
         self.log.info("fitting GP hyperparameters for %s on %d experiences", path_id, len(A))
         state.retained_at_fit = len(A)
-        state.running = self._pool.submit(fit_route, path_id, A, G, f.restarts, f.max_points, f.seed,
-                                          prev["dims"] if prev else None)
+        state.running = self._pool.submit(fit_route, path_id, A, G, tiles if f.local_windows else None,
+                                          f.restarts, f.max_points, f.seed, prev["dims"] if prev else None,
+                                          list(f.min_lengthscales))
         state.running.add_done_callback(lambda fut: self.inbox.put(("fit_done", (path_id, fut))))
 
     def _fit_done(self, path_id: str, fut: cf.Future) -> None:

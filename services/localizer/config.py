@@ -9,6 +9,8 @@ from typing import Literal
 class PoseSourceConfig:
     noise_m: float = 0.01
     noise_heading_deg: float = 0.3
+    noise_tau_s: float = 1.0
+    jitter_m: float = 0.002
     delay_s: float = 0.0
     dropout_prob: float = 0.0
     dropout_s: float = 0.3

@@ -28,7 +28,8 @@ def make_source(cfg: LocalizerConfig) -> PoseSource:
                           "(the vision source is not built yet); use source = \"pose\"")
     p = cfg.pose
     settings = PoseSourceSettings(
-        noise_m=p.noise_m, noise_heading_rad=math.radians(p.noise_heading_deg),
+        noise_m=p.noise_m, noise_heading_rad=math.radians(p.noise_heading_deg), noise_tau_s=p.noise_tau_s,
+        jitter_m=p.jitter_m, period_s=cfg.period_s,
         delay_ticks=int(round(p.delay_s / cfg.period_s)), dropout_prob=p.dropout_prob,
         dropout_ticks=max(1, int(round(p.dropout_s / cfg.period_s))), vertex_spacing_m=cfg.vertex_spacing_m,
         jumps=tuple(p.jumps))

@@ -1,7 +1,10 @@
 """The `pose` localization source: simulator truth made to look like a real localizer.
 
-Repeat: the estimate of tick k is the truth of tick k-D (D = delay in ticks) plus Gaussian noise,
-stamped with that capture time, expressed relative to the nearest taught vertex, with its covariance.
+Repeat: the estimate of tick k is the truth of tick k-D (D = delay in ticks) plus an error, stamped
+with that capture time, expressed relative to the nearest taught vertex, with its covariance. The error
+is what a visual teach-and-repeat localizer shows: mostly a slowly wandering offset (relocalizing
+against the same keyframes gives nearly the same answer frame after frame; a first-order Gauss-Markov
+process of std `noise_m` and correlation time `noise_tau_s`) plus a small frame-to-frame jitter.
 Dropouts (random, seeded) publish no pose at all. Teach-pass failures (thesis 5.4.5) are stretches of
 the route where the estimate is shifted sideways although the robot is not: a relocalization against
 a bad keyframe, the same in every trial. Teach: the route is recorded from truth, one vertex every
@@ -26,6 +29,9 @@ from common.path import Path, RouteRecorder
 class PoseSourceSettings:
     noise_m: float = 0.01
     noise_heading_rad: float = math.radians(0.3)
+    noise_tau_s: float = 1.0          # correlation time of the wandering error
+    jitter_m: float = 0.002           # independent per-frame error
+    period_s: float = 0.1
     delay_ticks: int = 0
     dropout_prob: float = 0.0
     dropout_ticks: int = 3
@@ -44,6 +50,7 @@ class PoseSource:
         self._buffer: deque[TruthPose] = deque()
         self._hint: int | None = None
         self._dropout_left = 0
+        self._error = np.zeros(3)
         self.trial = 0
 
     # --- modes -------------------------------------------------------------------------------
@@ -68,6 +75,7 @@ class PoseSource:
         self._buffer.clear()
         self._hint = 0   # a repeat starts at the beginning of the route
         self._dropout_left = 0
+        self._error = self._std() * self.rng.standard_normal(3)   # stationary from the first frame
 
     # --- per tick ------------------------------------------------------------------------------
     def on_truth(self, truth: TruthPose, path_id: str) -> LocState:
@@ -88,23 +96,30 @@ class PoseSource:
                 self._dropout_left = self.cfg.dropout_ticks
             self._dropout_left -= 1
             return self._no_pose(truth, path_id, "dropout", "no estimate this frame", captured, self._hint or 0)
-        noisy = np.array([captured.x_world_m + self.cfg.noise_m * self.rng.standard_normal(),
-                          captured.y_world_m + self.cfg.noise_m * self.rng.standard_normal(),
-                          float(se2.wrap(captured.theta_world_rad
-                                         + self.cfg.noise_heading_rad * self.rng.standard_normal()))])
+        # Gauss-Markov error: e <- a e + sqrt(1 - a^2) sigma n keeps the std at sigma
+        a = math.exp(-self.cfg.period_s / self.cfg.noise_tau_s) if self.cfg.noise_tau_s > 0 else 0.0
+        self._error = a * self._error + math.sqrt(1.0 - a * a) * self._std() * self.rng.standard_normal(3)
+        jitter = np.array([self.cfg.jitter_m, self.cfg.jitter_m, 0.0]) * self.rng.standard_normal(3)
+        err = self._error + jitter
+        noisy = np.array([captured.x_world_m + err[0], captured.y_world_m + err[1],
+                          float(se2.wrap(captured.theta_world_rad + err[2]))])
         vertex, T_vr = self.path.localize(noisy, self._hint)
         self._hint = vertex
         along = float(self.path.s[vertex] + T_vr[0])
         for at_m, length_m, lateral_m in self.cfg.jumps:
             if at_m <= along < at_m + length_m:
                 T_vr = T_vr + np.array([0.0, lateral_m, 0.0])
-        # the noise is isotropic in position, so its covariance is the same in the vertex frame
-        cov = np.diag([self.cfg.noise_m ** 2, self.cfg.noise_m ** 2, self.cfg.noise_heading_rad ** 2])
+        # the error is isotropic in position, so its covariance is the same in the vertex frame
+        sp2 = self.cfg.noise_m ** 2 + self.cfg.jitter_m ** 2
+        cov = np.diag([sp2, sp2, self.cfg.noise_heading_rad ** 2])
         return LocState(stamp_s=truth.stamp_s, capture_stamp_s=captured.stamp_s, tick=truth.tick,
                         capture_tick=captured.tick, trial=self.trial, path_id=path_id, source="pose", status="ok", reason="",
                         vertex=vertex, distance_m=float(self.path.s[vertex] + T_vr[0]),
                         T_vertex_robot=tuple(float(v) for v in T_vr),
                         cov_T_vertex_robot=tuple(float(v) for v in cov.ravel()), matched_features=None)
+
+    def _std(self) -> np.ndarray:
+        return np.array([self.cfg.noise_m, self.cfg.noise_m, self.cfg.noise_heading_rad])
 
     def _no_pose(self, truth: TruthPose, path_id: str, status: str, reason: str, captured: TruthPose,
                  vertex: int) -> LocState:

@@ -1,0 +1,57 @@
+"""Steering laws: what turns one localization estimate into an angular-rate command.
+
+The tracker (tracker.py) owns safety, the speed profile and limits; a law only chooses w for the speed
+the tracker set. Every law sees the same StepContext, so FL, ILC and the NMPC family plug in alike.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import numpy as np
+
+from common.path import Path
+from services.controller.fl import FLGains, fl_angular_rate
+
+
+@dataclass(frozen=True)
+class StepContext:
+    now_s: float
+    path: Path
+    vertex: int
+    pose: np.ndarray            # estimated robot pose in the route's frame (x, y, theta)
+    s_m: float                  # route coordinates of the estimate
+    e_lat_m: float
+    e_head_rad: float
+    v_mps: float                # linear speed the tracker commands this step
+    speed_at: Callable[[float], float]   # commanded speed at a distance along the route (schedule + end)
+    prev_cmd: tuple[float, float]        # u_{k-1}
+    prev_pose: np.ndarray | None         # estimate one period earlier (for v_{k-1}, thesis 5.3.1)
+    w_limit: float              # |w| the tracker will allow at v_mps
+    w_limit_at: Callable[[float], float]  # the same bound for another speed
+
+
+@dataclass
+class LawResult:
+    w_radps: float
+    iterations: int = 0
+    predicted: np.ndarray | None = None   # (K, 3) predicted poses in the route frame, if the law predicts
+    info: dict = field(default_factory=dict)
+
+
+class SteeringLaw(Protocol):
+    name: str
+
+    def angular(self, ctx: StepContext) -> LawResult: ...
+
+
+class FLLaw:
+    """Feedback linearization, eq. 3.5 (see fl.py for the sign convention and w_ref)."""
+    name = "fl"
+
+    def __init__(self, gains: FLGains):
+        self.gains = gains
+
+    def angular(self, ctx: StepContext) -> LawResult:
+        kappa = float(ctx.path.curvature[ctx.vertex])
+        return LawResult(fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.gains))

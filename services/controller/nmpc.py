@@ -1,0 +1,242 @@
+"""Learning-based NMPC (thesis 5.2, 5.3.1): the nominal unicycle plus a learned disturbance.
+
+Prediction model over the horizon (eq. 5.14, 5.26), states in the route's frame:
+
+    x_{j+1} = f(x_j, u_j) + R(theta_j) g(a_j),    a_j = (route coords of x_j, v_{j-1}, u_j, u_{j-1})
+
+with g the GP posterior mean of the local window (body frame, as the experiences are built, see
+experience.py) and v_{j-1} recomputed from consecutive predicted poses as in 5.3.1. The linear speed of
+every step is fixed by the speed profile (schedule, end of route); the angular rates w_0..w_{K-1} are
+optimized by Gauss-Newton (eq. 5.5-5.10) with the actuator (and Ackermann steering) limits as bounds,
+warm-started from the previous solution shifted by one step.
+
+Cost (eq. 5.16): for j = 1..K the error of x_j against the desired state x_{d,j}, the taught route's pose
+where the schedule puts the robot after j periods, expressed in that pose's frame (along, lateral,
+heading) and weighted by Q = diag(q_along, q_lat, q_head); plus R times the deviation of w_j from the
+route's own turn rate v_j kappa. (The thesis penalizes u itself; penalizing the deviation from the
+route's turn rate keeps the optimum on curved routes from being biased towards driving straight.)
+
+All Jacobians are analytic: forward sensitivities of the rollout with the GP's mean gradient
+(`GaussianProcess.mean_and_grad`), no finite differences in the loop.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from services.controller.gauss_newton import gauss_newton
+from services.controller.laws import LawResult, StepContext
+
+
+class DisturbanceModel(Protocol):
+    def mean_and_grad(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+@dataclass(frozen=True)
+class NMPCSettings:
+    horizon: int = 10
+    q_along: float = 1.0      # 1/m^2
+    q_lat: float = 40.0       # 1/m^2
+    q_head: float = 10.0      # 1/rad^2
+    r_w: float = 1.0          # s^2/rad^2, on w - v kappa
+    r_dw: float = 0.0         # s^2/rad^2, on w_j - w_{j-1}
+    q_terminal: float = 0.0   # 1/m^2, on the lateral error lookahead_m ahead of the last predicted pose
+    lookahead_m: float = 1.0
+    max_iter: int = 10
+    tol: float = 1e-4         # rad/s: stop when no angular rate moves more than this
+
+
+@dataclass
+class Plan:
+    """What one solve produced, for status and for the next step's warm start."""
+    w: np.ndarray
+    poses: np.ndarray           # (K+1, 3) predicted, x_0 first
+    desired: np.ndarray         # (K+1, 3)
+    cost: float
+    iterations: int
+    converged: bool
+
+
+class HorizonProblem:
+    """One NMPC problem: fixed initial state, desired states, speeds, bounds and model."""
+
+    def __init__(self, x0, desired: np.ndarray, s_desired: np.ndarray, v: np.ndarray, w_ref: np.ndarray,
+                 dt: float, settings: NMPCSettings, model: DisturbanceModel | None,
+                 v_prev_act: tuple[float, float], u_prev: tuple[float, float]):
+        self.x0 = np.asarray(x0, dtype=float)
+        self.D = desired            # (K+1, 3): D[0] is the route pose at the robot, D[j] the desired x_j
+        self.sD = s_desired         # (K+1,) arc length of D[j]
+        self.v = v                  # (K,) linear speed of each step
+        self.w_ref = w_ref          # (K,)
+        self.dt = dt
+        self.s = settings
+        self.model = model
+        self.v_prev_act = v_prev_act
+        self.u_prev = u_prev
+        self.K = len(v)
+        self.sqrt_q = np.sqrt([settings.q_along, settings.q_lat, settings.q_head])
+        self.sqrt_r = math.sqrt(settings.r_w)
+        self.sqrt_dr = math.sqrt(settings.r_dw)
+        self.sqrt_qt = math.sqrt(settings.q_terminal)
+        self.cD = np.cos(self.D[:, 2])
+        self.sinD = np.sin(self.D[:, 2])
+
+    def rollout(self, w: np.ndarray, with_jac: bool):
+        """Predicted poses (K+1, 3) and, with_jac, their sensitivities dX/dw (K+1, 3, K)."""
+        K, dt = self.K, self.dt
+        X = np.empty((K + 1, 3))
+        X[0] = self.x0
+        S = np.zeros((K + 1, 3, K)) if with_jac else None
+        model = self.model
+        a = np.empty(9)
+        for j in range(K):
+            xj, yj, thj = X[j]
+            cd, sd = self.cD[j], self.sinD[j]
+            dx, dy = xj - self.D[j, 0], yj - self.D[j, 1]
+            c, s = math.cos(thj), math.sin(thj)
+            v = self.v[j]
+            if model is not None:
+                # a_j (experience.py A_NAMES): route coords, v_{j-1}, u_j, u_{j-1}
+                a[0] = self.sD[j] + cd * dx + sd * dy
+                a[1] = -sd * dx + cd * dy
+                a[2] = math.remainder(thj - self.D[j, 2], 2 * math.pi)
+                if j == 0:
+                    a[3], a[4] = self.v_prev_act
+                    a[7], a[8] = self.u_prev
+                else:
+                    xp, yp, thp = X[j - 1]
+                    cp, sp = math.cos(thp), math.sin(thp)
+                    a[3] = (cp * (xj - xp) + sp * (yj - yp)) / dt
+                    a[4] = (thj - thp) / dt
+                    a[7], a[8] = self.v[j - 1], w[j - 1]
+                a[5], a[6] = v, w[j]
+                g, Dg = model.mean_and_grad(a)
+                gx, gy, gth = float(g[0]), float(g[1]), float(g[2])
+            else:
+                gx = gy = gth = 0.0
+            X[j + 1, 0] = xj + v * dt * c + c * gx - s * gy
+            X[j + 1, 1] = yj + v * dt * s + s * gx + c * gy
+            X[j + 1, 2] = thj + w[j] * dt + gth
+            if not with_jac:
+                continue
+            Sj = S[j]
+            Sn = S[j + 1]
+            Sn[:] = Sj
+            Sn[0] += (-v * dt * s - s * gx - c * gy) * Sj[2]
+            Sn[1] += (v * dt * c + c * gx - s * gy) * Sj[2]
+            Sn[2, j] += dt
+            if model is not None:
+                da = np.zeros((9, K))
+                da[0] = cd * Sj[0] + sd * Sj[1]
+                da[1] = -sd * Sj[0] + cd * Sj[1]
+                da[2] = Sj[2]
+                if j > 0:
+                    Sp = S[j - 1]
+                    da[3] = (cp * (Sj[0] - Sp[0]) + sp * (Sj[1] - Sp[1])
+                             + (-sp * (xj - xp) + cp * (yj - yp)) * Sp[2]) / dt
+                    da[4] = (Sj[2] - Sp[2]) / dt
+                    da[8, j - 1] = 1.0
+                da[6, j] = 1.0
+                dg = Dg @ da                                                    # (3, K)
+                Sn[0] += c * dg[0] - s * dg[1]
+                Sn[1] += s * dg[0] + c * dg[1]
+                Sn[2] += dg[2]
+        return X, S
+
+    def errors(self, X: np.ndarray) -> np.ndarray:
+        """(K, 3) errors of x_1..x_K in the frames of their desired poses (along, lateral, heading)."""
+        d = X[1:, :2] - self.D[1:, :2]
+        cd, sd = self.cD[1:], self.sinD[1:]
+        return np.column_stack([cd * d[:, 0] + sd * d[:, 1], -sd * d[:, 0] + cd * d[:, 1],
+                                np.remainder(X[1:, 2] - self.D[1:, 2] + math.pi, 2 * math.pi) - math.pi])
+
+    def _extra(self, w: np.ndarray, E: np.ndarray) -> np.ndarray:
+        """Input-rate and terminal residuals."""
+        dw = np.diff(np.concatenate([[self.u_prev[1]], w]))
+        term = E[-1, 1] + self.s.lookahead_m * math.sin(E[-1, 2])
+        return np.concatenate([self.sqrt_dr * dw, [self.sqrt_qt * term]])
+
+    def residual(self, w: np.ndarray):
+        X, S = self.rollout(w, with_jac=True)
+        E = self.errors(X)
+        r = np.concatenate([(E * self.sqrt_q).ravel(), self.sqrt_r * (w - self.w_ref), self._extra(w, E)])
+        K = self.K
+        J = np.zeros((3 * K + 2 * K + 1, K))
+        cd, sd = self.cD[1:], self.sinD[1:]
+        Sx = S[1:]                                                              # (K, 3, K)
+        lat = -sd[:, None] * Sx[:, 0] + cd[:, None] * Sx[:, 1]                  # d e_lat_j / dw
+        J[0:3 * K:3] = self.sqrt_q[0] * (cd[:, None] * Sx[:, 0] + sd[:, None] * Sx[:, 1])
+        J[1:3 * K:3] = self.sqrt_q[1] * lat
+        J[2:3 * K:3] = self.sqrt_q[2] * Sx[:, 2]
+        J[3 * K:4 * K] = self.sqrt_r * np.eye(K)
+        J[4 * K:5 * K] = self.sqrt_dr * (np.eye(K) - np.eye(K, k=-1))
+        J[5 * K] = self.sqrt_qt * (lat[-1] + self.s.lookahead_m * math.cos(E[-1, 2]) * Sx[-1, 2])
+        return r, J
+
+    def cost(self, w: np.ndarray) -> float:
+        E = self.errors(self.rollout(w, with_jac=False)[0])
+        extra = self._extra(w, E)
+        return 0.5 * float(np.sum((E * self.sqrt_q) ** 2) + self.s.r_w * np.sum((w - self.w_ref) ** 2)
+                           + extra @ extra)
+
+
+def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
+                  model: DisturbanceModel | None) -> tuple[HorizonProblem, np.ndarray]:
+    """Desired states, speeds, reference turn rates and bounds for this step; returns (problem, w_limit)."""
+    K = settings.horizon
+    path = ctx.path
+    s_d = np.empty(K + 1)
+    v = np.empty(K)
+    s_d[0] = ctx.s_m
+    for j in range(K):
+        v[j] = ctx.v_mps if j == 0 else ctx.speed_at(s_d[j])
+        s_d[j + 1] = s_d[j] + v[j] * dt
+    desired = np.array([path.pose_at(s) for s in s_d])
+    kappa = np.interp(s_d[:-1], path.s, path.curvature)
+    w_ref = v * kappa
+    w_limit = np.array([ctx.w_limit_at(vj) for vj in v])
+    if ctx.prev_pose is not None:
+        pp, x0 = ctx.prev_pose, ctx.pose
+        c, s = math.cos(pp[2]), math.sin(pp[2])
+        v_prev = ((c * (x0[0] - pp[0]) + s * (x0[1] - pp[1])) / dt,
+                  math.remainder(x0[2] - pp[2], 2 * math.pi) / dt)
+    else:
+        v_prev = ctx.prev_cmd   # no previous estimate: assume the robot did what it was told
+    # keep the heading continuous with the desired ones (no 2*pi jumps inside the rollout)
+    x0 = np.array(ctx.pose, dtype=float)
+    x0[2] = desired[0, 2] + math.remainder(x0[2] - desired[0, 2], 2 * math.pi)
+    desired[:, 2] = desired[0, 2] + np.unwrap(desired[:, 2] - desired[0, 2])
+    problem = HorizonProblem(x0, desired, s_d, v, w_ref, dt, settings, model, v_prev, ctx.prev_cmd)
+    return problem, w_limit
+
+
+class LBNMPCLaw:
+    """The LB-NMPC steering law. `model_for(ctx)` gives the disturbance model of the local window (None:
+    the nominal model, as before any experience exists or when learning is off)."""
+    name = "lb-nmpc"
+
+    def __init__(self, settings: NMPCSettings, dt: float,
+                 model_for: Callable[[StepContext], DisturbanceModel | None] = lambda ctx: None):
+        self.settings = settings
+        self.dt = dt
+        self.model_for = model_for
+        self._prev: np.ndarray | None = None
+        self.last_plan: Plan | None = None
+
+    def angular(self, ctx: StepContext) -> LawResult:
+        model = self.model_for(ctx)
+        problem, w_limit = build_problem(ctx, self.settings, self.dt, model)
+        if self._prev is not None:
+            u0 = np.concatenate([self._prev[1:], self._prev[-1:]])   # warm start: shift by one period
+        else:
+            u0 = problem.w_ref.copy()
+        res = gauss_newton(problem.residual, u0, -w_limit, w_limit, max_iter=self.settings.max_iter,
+                           tol=self.settings.tol)
+        self._prev = res.u
+        X, _ = problem.rollout(res.u, with_jac=False)
+        self.last_plan = Plan(res.u, X, problem.D, res.cost, res.iterations, res.converged)
+        return LawResult(float(res.u[0]), res.iterations, X[1:],
+                         {"cost": res.cost, "converged": res.converged, "learned": model is not None})
