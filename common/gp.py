@@ -313,6 +313,13 @@ class GaussianProcess:
         self._dims = [_Dim(Xc, np.ascontiguousarray(Y[:, j]), h) for j, h in enumerate(hypers)]
         self._stack = None
 
+    def mean_terms(self) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, float, np.ndarray]]]:
+        """(center, centred inputs (N, p), per output (1/lengthscales, sigma_f^2, alpha)): the posterior
+        mean is sf2 * sum_n alpha_n exp(-|(a - center - x_n) / ell|^2 / 2), for re-expressing it in
+        another modelling language (the CasADi benchmark does)."""
+        Xc = self._Xc1[:, 1:]
+        return self.center.copy(), Xc.copy(), [(c.inv_ell.copy(), float(c.sf2), c.alpha.copy()) for c in self._dims]
+
     def mean_and_grad(self, x) -> tuple[np.ndarray, np.ndarray]:
         """Posterior mean (d,) and its gradient (d, p) at ONE query point, all output dimensions in a
         handful of stacked numpy operations: the NMPC rolls its horizon out point by point, so per-call
@@ -327,16 +334,16 @@ class GaussianProcess:
                            np.array([c.sf2 for c in dims]), np.stack([c.alpha_aug for c in dims]))
         B, B2, inv_ell, inv_ell2, sf2, alpha_aug = self._stack
         A = q * inv_ell                                                     # (d, p)
-        k = np.einsum("dnp,dp->dn", B, A)
+        k = np.matmul(B, A[:, :, None])[:, :, 0]
         k *= -2.0
         k += B2
-        k += np.einsum("dp,dp->d", A, A)[:, None]
+        k += np.sum(A * A, axis=1)[:, None]
         k *= -0.5
         np.exp(k, out=k)
         k *= sf2[:, None]                                                  # (d, N)
-        r = np.einsum("dn,dnk->dk", k, alpha_aug)                          # [k alpha, k (alpha x)]
+        r = np.matmul(k[:, None, :], alpha_aug)[:, 0, :]                    # [k alpha, k (alpha x)]
         mean = r[:, 0]
-        return mean, (r[:, 1:] - q * mean[:, None]) * inv_ell2
+        return mean, (r[:, 1:] - q * r[:, :1]) * inv_ell2
 
     def _prep(self, Xq) -> np.ndarray:
         Xq = np.asarray(Xq, dtype=float)

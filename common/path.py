@@ -126,14 +126,15 @@ class Path:
                           distance_m=float(self.s[a] + t * self.segment_lengths[a] + along_extra),
                           lateral_m=lateral, heading_rad=float(se2.wrap(T[2] - heading)), segment=a)
 
-    def pose_at(self, distance_m: float) -> np.ndarray:
-        """Interpolated route pose at an arc length (clamped to the route)."""
-        d = float(np.clip(distance_m, 0.0, self.length_m))
-        a = int(np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2))
+    def pose_at(self, distance_m):
+        """Interpolated route pose(s) at arc length(s), clamped to the route: (3,) or (M, 3)."""
+        d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)
+        a = np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2)
         t = (d - self.s[a]) / self.segment_lengths[a]
         p0, p1 = self.poses[a], self.poses[a + 1]
-        xy = p0[:2] + t * (p1[:2] - p0[:2])
-        return np.array([xy[0], xy[1], float(se2.wrap(p0[2] + t * se2.wrap(p1[2] - p0[2])))])
+        xy = p0[..., :2] + t[..., None] * (p1[..., :2] - p0[..., :2])
+        th = se2.wrap(p0[..., 2] + t * se2.wrap(p1[..., 2] - p0[..., 2]))
+        return np.concatenate([xy, np.asarray(th)[..., None]], axis=-1)
 
 
 class RouteRecorder:

@@ -10,7 +10,7 @@ import threading
 
 from common.config import ConfigError
 
-BENCHES = ("bus", "gp", "store")
+BENCHES = ("bus", "gp", "store", "controller")
 
 
 def _raise_interrupt(_signum, _frame):
@@ -21,7 +21,8 @@ def _experiment(args) -> int:
     from deploy.experiment import ExperimentError, run_experiment
     signal.signal(signal.SIGTERM, _raise_interrupt)  # SIGTERM cleans up exactly like Ctrl-C
     try:
-        run_experiment(args.scenario, args.out, connect=args.connect, log_level=args.log_level)
+        run_experiment(args.scenario, args.out, connect=args.connect, log_level=args.log_level,
+                       overwrite=args.overwrite)
     except (ConfigError, ExperimentError) as exc:
         print(f"lbc experiment: {exc}", file=sys.stderr)
         return 2 if isinstance(exc, ConfigError) else 1
@@ -76,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("scenario")
     run.add_argument("--out", required=True, help="output directory (summary.json, report.html, run.mcap)")
     run.add_argument("--connect", default=None, help="use a running deployment at this Zenoh endpoint")
+    run.add_argument("--overwrite", action="store_true", help="replace an earlier run in the output directory")
     run.add_argument("--log-level", default="INFO")
     run.set_defaults(func=_experiment)
 

@@ -329,14 +329,31 @@ class Experiment:
         return total
 
 
+OUTPUTS = ("summary.json", "report.html", "run.mcap", "config", "logs", "data")
+
+
+def prepare_out_dir(out: FsPath, overwrite: bool) -> None:
+    """A run starts from nothing learned: an output directory holding an earlier run (whose store and
+    routes would silently carry its learning over) is refused unless `overwrite` clears it."""
+    import shutil
+    earlier = [n for n in OUTPUTS if (out / n).exists()]
+    if earlier and not overwrite:
+        raise ExperimentError(f"{out} already holds a run ({', '.join(earlier)}); choose another directory "
+                              "or pass --overwrite to replace it")
+    for n in earlier:
+        target = out / n
+        shutil.rmtree(target) if target.is_dir() else target.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+
+
 def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: str | None = None,
-                   progress_stream: TextIO = sys.stderr, log_level: str = "INFO") -> dict:
+                   progress_stream: TextIO = sys.stderr, log_level: str = "INFO", overwrite: bool = False) -> dict:
     """Run a whole experiment; returns the summary (also written to out_dir/summary.json)."""
     t_start = time.monotonic()
     sc = load_scenario(scenario_path)
     check_supported(sc)
     out = FsPath(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    prepare_out_dir(out, overwrite)
     progress = Progress(progress_stream)
     launcher = None
     if connect is None:

@@ -41,7 +41,7 @@ class NMPCConfig:
     q_terminal: float = 100.0
     lookahead_m: float = 1.5
     max_iter: int = 10
-    tol: float = 1e-4
+    tol: float = 1e-3
 
     def __post_init__(self):
         if self.horizon < 1 or self.max_iter < 1 or min(self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw,

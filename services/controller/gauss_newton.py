@@ -57,6 +57,10 @@ def gauss_newton(residual: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
         while True:
             du = _step(J, r, mu, lower - u, upper - u)
             trial = np.clip(u + du, lower, upper)
+            moved = float(np.max(np.abs(trial - u))) if len(u) else 0.0
+            if moved < tol:
+                # converged: the remaining step is below the resolution that matters; stop here
+                return GNResult(u, cost, it, True)
             r_t, J_t = residual(trial)
             new_cost = 0.5 * float(r_t @ r_t)
             if new_cost <= cost:
@@ -65,8 +69,5 @@ def gauss_newton(residual: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
             mu = max(4.0 * mu, 1e-4 * scale)
             if mu > 1e6 * scale:  # no step lowers the cost: this is a (local) minimum
                 return GNResult(u, cost, it, True)
-        moved = float(np.max(np.abs(trial - u))) if len(u) else 0.0
         u, r, J, cost = trial, r_t, J_t, new_cost
-        if moved < tol:
-            return GNResult(u, cost, it, True)
     return GNResult(u, cost, max_iter, False)

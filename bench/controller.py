@@ -1,0 +1,230 @@
+"""`lbc bench controller --algorithm lb-nmpc`: per-step solve time of the real-time controller, and the
+same optimal-control problems solved by CasADi + IPOPT on identical inputs.
+
+Setup, all from the project's own pure cores (bench/closed_loop.py): a Husky is taught a 30 m route
+with a side slope and a slip patch, then repeats it with the FL tracker at three speeds, twice each,
+so that every (vertex, speed bin) holds c_bin = 4 experiences. With c_vertex = 7 and c_velocity = 1
+the full local window is 15 x 3 x 4 = 180 experiences (the thesis's "up to 180"). Hyperparameters are
+fitted as the store fits them. Then one LB-NMPC repeat at the middle speed is timed step by step: the
+time of `law.angular` (model lookup, GP build when the window changes, problem set-up, Gauss-Newton).
+The process is pinned to one CPU and BLAS to one thread. Every n-th problem is kept and solved again by
+CasADi/IPOPT (same dynamics with the same GP mean written symbolically, same cost, same bounds, same
+start); `casadi_solve_ms_p50` is IPOPT's solve time (graph building excluded) and `cost_gap` the mean
+relative difference of the optimal costs, (ours - IPOPT's) / IPOPT's: > 0 means ours is worse.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import sys
+import tempfile
+import time
+from contextlib import nullcontext
+
+import numpy as np
+
+from bench.closed_loop import ClosedLoop
+from bench.report import run_and_print
+from common.messages import Experience, HyperDim, HyperMsg
+from common.scenario import TerrainPatch
+from services.controller.gauss_newton import gauss_newton
+from services.controller.local_model import LocalModels
+from services.controller.nmpc import HorizonProblem, LBNMPCLaw, NMPCSettings, build_problem
+from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
+from services.gp_store.db import BinPolicy, ExperienceDB
+from services.gp_store.fitting import fit_route
+from services.localizer.pose_source import PoseSourceSettings
+
+log = logging.getLogger("bench.controller")
+ROUTE = [[0, 0], [10, 0], [18, 6], [26, 6], [30, 2]]
+TERRAIN = [TerrainPatch(kind="side_slope", center=(13.0, 2.0), radius_m=6.0, slope_deg=12.0, downhill_deg=-90.0),
+           TerrainPatch(kind="slip", center=(20.0, 5.0), radius_m=4.0, traction=0.6)]
+SPEEDS = (0.30, 0.55, 0.80)       # speed bins 1, 2, 3 with v_bin = 0.25
+POLICY = BinPolicy(v_bin_mps=0.25, c_bin=4, c_vertex=7, c_velocity=1)
+DT = 0.1
+
+
+def _pin_to_one_core() -> str:
+    try:
+        cpu = min(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpu})
+        return f"cpu {cpu}"
+    except (AttributeError, OSError):
+        return "not pinned"
+
+
+def build_memory(seed: int, workdir: str):
+    """Teach, collect FL experiences at three speeds, store them and fit hyperparameters."""
+    cl = ClosedLoop(ROUTE, TERRAIN, preset="husky", seed=seed, teach_speed=0.4, loc=PoseSourceSettings())
+    path = cl.teach()
+    db = ExperienceDB(os.path.join(workdir, "bench.db"), POLICY)
+    seq, trial = 0, 0
+    for _ in range(2):
+        for speed in SPEEDS:
+            trial += 1
+            r = cl.repeat(trial, speed)
+            db.ingest("bench", [Experience(stamp_s=o.stamp_s, robot="bench", trial=trial, path_id="route", seq=seq + i,
+                                           vertex=o.vertex, v_cmd_mps=o.v_cmd_mps, a=o.a, g=o.g)
+                                for i, o in enumerate(r.observations)])
+            seq += len(r.observations)
+    A, G, tiles = db.all_of("route")
+    body = fit_route("route", A, G, tiles, 3, 1000, seed, None, DEFAULT_MIN_LENGTHSCALES)
+    hyper = HyperMsg(stamp_s=0.0, path_id="route", version=1, n_used=body["n_used"], n_total=len(A),
+                     fit_s=body["fit_s"], lml=body["lml"], dims=[HyperDim(**d) for d in body["dims"]])
+    # windows in memory, as the controller's prefetch cache holds them
+    windows = {}
+    for v in range(len(path)):
+        for l in range(0, 5):   # the end-of-route slowdown drops into lower bins
+            w = db.window("route", v, (l + 0.5) * POLICY.v_bin_mps)
+            windows[(v, l)] = (w.A, w.G)
+    db.close()
+    return cl, path, hyper, windows, trial, len(A)
+
+
+def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, settings: NMPCSettings,
+                    keep_every: int):
+    models = LocalModels(lambda v, s: windows[(v, int(math.floor(s / POLICY.v_bin_mps)))], lambda: hyper,
+                         settings.horizon * DT, POLICY.v_bin_mps)
+    times, sizes, kept = [], [], []
+
+    class Timed(LBNMPCLaw):
+        def angular(self, ctx):
+            # the warm start this step will use (the law shifts its previous solution by one period)
+            u0 = None if self._prev is None else np.concatenate([self._prev[1:], self._prev[-1:]])
+            t0 = time.perf_counter()
+            res = super().angular(ctx)
+            times.append((time.perf_counter() - t0) * 1e3)
+            sizes.append(models.last_n)
+            if u0 is not None and len(times) % keep_every == 0:
+                kept.append((ctx, models.model_for(ctx), u0))
+            return res
+
+    law = Timed(settings, DT, models.model_for)
+    cl.repeat(trial + 1, SPEEDS[1], law=law)
+    return np.array(times), np.array(sizes), kept
+
+
+def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.ndarray):
+    """The same problem in CasADi, solved by IPOPT; returns (solve seconds, optimal cost)."""
+    import casadi as ca
+    K, dt, s = problem.K, problem.dt, problem.s
+    w = ca.SX.sym("w", K)
+    terms = model.mean_terms() if model is not None else None
+
+    def gp_mean(a):
+        center, Xc, dims = terms
+        out = []
+        for inv_ell, sf2, alpha in dims:
+            diff = (ca.repmat(ca.transpose(a - ca.DM(center)), Xc.shape[0], 1) - ca.DM(Xc)) * ca.repmat(
+                ca.DM(inv_ell).T, Xc.shape[0], 1)
+            k = sf2 * ca.exp(-0.5 * ca.sum2(diff ** 2))
+            out.append(ca.dot(k, ca.DM(alpha)))
+        return out
+
+    X = [ca.SX(problem.x0)]
+    for j in range(K):
+        xj = X[j]
+        c, sn = ca.cos(xj[2]), ca.sin(xj[2])
+        gx = gy = gth = 0
+        if model is not None:
+            cd, sd = problem.cD[j], problem.sinD[j]
+            dx, dy = xj[0] - problem.D[j, 0], xj[1] - problem.D[j, 1]
+            if j == 0:
+                v_act, w_act = problem.v_prev_act
+                v_prev, w_prev = problem.u_prev
+            else:
+                xp = X[j - 1]
+                v_act = (ca.cos(xp[2]) * (xj[0] - xp[0]) + ca.sin(xp[2]) * (xj[1] - xp[1])) / dt
+                w_act = (xj[2] - xp[2]) / dt
+                v_prev, w_prev = problem.v[j - 1], w[j - 1]
+            a = ca.vertcat(problem.sD[j] + cd * dx + sd * dy, -sd * dx + cd * dy, xj[2] - problem.D[j, 2],
+                           v_act, w_act, problem.v[j], w[j], v_prev, w_prev)
+            gx, gy, gth = gp_mean(a)
+        v = problem.v[j]
+        X.append(ca.vertcat(xj[0] + v * dt * c + c * gx - sn * gy, xj[1] + v * dt * sn + sn * gx + c * gy,
+                            xj[2] + w[j] * dt + gth))
+    res = []
+    for j in range(1, K + 1):
+        cd, sd = problem.cD[j], problem.sinD[j]
+        dx, dy = X[j][0] - problem.D[j, 0], X[j][1] - problem.D[j, 1]
+        e = [cd * dx + sd * dy, -sd * dx + cd * dy, X[j][2] - problem.D[j, 2]]
+        res += [problem.sqrt_q[i] * e[i] for i in range(3)]
+        if j == K:
+            term = e[1] + s.lookahead_m * ca.sin(e[2])
+    res += [problem.sqrt_r * (w[j] - problem.w_ref[j]) for j in range(K)]
+    prev = problem.u_prev[1]
+    for j in range(K):
+        res.append(problem.sqrt_dr * (w[j] - prev))
+        prev = w[j]
+    res.append(problem.sqrt_qt * term)
+    r = ca.vertcat(*res)
+    nlp = {"x": w, "f": 0.5 * ca.dot(r, r)}
+    solver = ca.nlpsol("ocp", "ipopt", nlp, {"ipopt.print_level": 0, "print_time": 0, "ipopt.tol": 1e-10,
+                                             "ipopt.sb": "yes"})
+    t0 = time.perf_counter()
+    out = solver(x0=u0, lbx=-w_limit, ubx=w_limit)
+    seconds = time.perf_counter() - t0
+    return seconds, float(out["f"])
+
+
+def run_bench(args) -> dict:
+    pinned = _pin_to_one_core()
+    limit = nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+        limit = threadpool_limits(limits=1, user_api="blas")
+    except ImportError:
+        log.warning("threadpoolctl not installed: BLAS keeps its default threads")
+    settings = NMPCSettings(horizon=args.horizon)
+    with limit, tempfile.TemporaryDirectory() as work:
+        t0 = time.perf_counter()
+        cl, path, hyper, windows, trials, n = build_memory(args.seed, work)
+        log.info("route %.1f m, %d experiences retained from %d FL trials, hyperparameters in %.1f s (%.1f s)",
+                 path.length_m, n, trials, hyper.fit_s, time.perf_counter() - t0)
+        times, sizes, kept = time_controller(cl, hyper, windows, trials, settings, args.keep_every)
+        log.info("LB-NMPC: %d steps, window mean %.0f max %d", len(times), sizes.mean(), sizes.max())
+        result = {"algorithm": args.algorithm, "horizon": args.horizon, "window": round(float(sizes.mean()), 1),
+                  "window_max": int(sizes.max()), "solve_ms_p50": round(float(np.percentile(times, 50)), 3),
+                  "solve_ms_p99": round(float(np.percentile(times, 99)), 3),
+                  "solve_ms_mean": round(float(times.mean()), 3), "steps": len(times), "pinned": pinned,
+                  "casadi_solve_ms_p50": None, "cost_gap": None}
+        try:
+            import casadi  # noqa: F401  (optional benchmark dependency)
+        except ImportError:
+            log.warning("casadi not installed (pip install casadi): no IPOPT comparison")
+            return result
+        ratios, gaps, ipopt_ms = [], [], []
+        for ctx, model, u0 in kept:
+            problem, w_limit = build_problem(ctx, settings, DT, model)
+            t1 = time.perf_counter()
+            ours = gauss_newton(problem.residual, u0, -w_limit, w_limit, max_iter=settings.max_iter,
+                                tol=settings.tol)
+            ours_ms = (time.perf_counter() - t1) * 1e3
+            sec, ipopt_cost = casadi_solve(problem, model, u0, w_limit)
+            ipopt_ms.append(sec * 1e3)
+            ratios.append(sec * 1e3 / ours_ms)
+            gaps.append((ours.cost - ipopt_cost) / max(abs(ipopt_cost), 1e-12))
+        log.info("IPOPT on %d problems: %.1f ms median (ours %.1fx faster); cost gap median %.2e, max %.2e",
+                 len(kept), np.median(ipopt_ms), np.median(ratios), np.median(gaps), np.max(gaps))
+        result.update({"casadi_solve_ms_p50": round(float(np.median(ipopt_ms)), 3),
+                       "cost_gap": float(np.mean(gaps)), "cost_gap_max": float(np.max(gaps)),
+                       "casadi_over_ours_time_ratio": round(float(np.median(ratios)), 2),
+                       "casadi_problems": len(kept)})
+        return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="lbc bench controller", description=__doc__.splitlines()[0])
+    parser.add_argument("--algorithm", default="lb-nmpc", choices=["lb-nmpc"])
+    parser.add_argument("--horizon", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--keep-every", type=int, default=20, help="compare every n-th problem with IPOPT")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[bench.controller] %(message)s", stream=sys.stderr)
+    return run_and_print(lambda: run_bench(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
