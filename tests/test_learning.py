@@ -1,0 +1,63 @@
+"""Learning through the real services (router, bridge, localizer, controller, store as processes):
+the thesis's ILC and LB-NMPC experiments, shortened for CI (the full ones are in examples/)."""
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from deploy.experiment import run_experiment
+
+pytestmark = pytest.mark.integration
+
+SANDY_SLOPE = [
+    {"kind": "side_slope", "center": [16.0, 1.0], "radius_m": 7.0, "slope_deg": 12.0, "downhill_deg": -90.0},
+    {"kind": "slip", "center": [16.0, 1.0], "radius_m": 6.0, "traction": 0.6},
+]
+LBNMPC_TERRAIN = [
+    {"kind": "side_slope", "center": [13.0, 2.0], "radius_m": 6.0, "slope_deg": 12.0, "downhill_deg": -90.0},
+    {"kind": "slip", "center": [20.0, 5.0], "radius_m": 4.0, "traction": 0.6},
+]
+
+
+def run(tmp_path, scenario_file, data: dict) -> list[dict]:
+    out = tmp_path / data["name"]
+    run_experiment(scenario_file(data), out, progress_stream=open(os.devnull, "w"))
+    return json.loads((out / "summary.json").read_text())["trials"]
+
+
+def test_ilc_experiment_1_cuts_max_errors_by_2_5_by_trial_6(tmp_path, scenario_file):
+    trials = run(tmp_path, scenario_file, {
+        "name": "ilc1", "seed": 1, "robot": {"preset": "husky"},
+        "path": {"waypoints": [[0, 0], [12, 0], [22, 5], [32, 5], [40, 0]], "teach_speed_mps": 0.5},
+        "terrain": SANDY_SLOPE, "localization": {"source": "pose", "noise_m": 0.01, "delay_s": 0.1},
+        "controller": {"algorithm": "ilc"}, "trials": {"count": 6, "speed": 0.5}})
+    first, last = trials[0], trials[-1]
+    assert all(t["completed"] for t in trials)
+    assert first["max_lateral_m"] > 0.15
+    assert last["max_lateral_m"] <= first["max_lateral_m"] / 2.5, [t["max_lateral_m"] for t in trials]
+    assert last["max_heading_rad"] <= first["max_heading_rad"] / 2.5, [t["max_heading_rad"] for t in trials]
+    assert (tmp_path / "ilc1" / "data" / "controller" / "ilc" / "ilc1.ilc").exists()
+
+
+LBNMPC = {"name": "lbnmpc1", "seed": 11, "robot": {"preset": "husky"},
+          "path": {"waypoints": [[0, 0], [10, 0], [18, 6], [26, 6], [30, 2]], "teach_speed_mps": 0.4},
+          "terrain": LBNMPC_TERRAIN, "localization": {"source": "pose", "noise_m": 0.01},
+          "controller": {"algorithm": "lb-nmpc"}, "trials": {"count": 5, "speed": 0.4}}
+
+
+def test_lb_nmpc_experiment_1_cuts_max_lateral_error_by_60_percent_and_keeps_it(tmp_path, scenario_file):
+    trials = run(tmp_path, scenario_file, LBNMPC)
+    lat = [t["max_lateral_m"] for t in trials]
+    assert all(t["completed"] for t in trials) and lat[0] > 0.08
+    assert max(lat[3:]) <= 0.4 * lat[0], lat     # trials 4 and 5
+    assert trials[-1]["experiences_total"] > 2000
+    assert trials[-1]["heading_rate_residual_rmse_learned_radps"] < 0.5 * trials[-1][
+        "heading_rate_residual_rmse_nominal_radps"]
+
+
+def test_without_learning_lb_nmpc_repeats_its_first_trial(tmp_path, scenario_file):
+    data = dict(LBNMPC, name="lbnmpc_off", trials={"count": 3, "speed": 0.4, "learning": False})
+    lat = [t["max_lateral_m"] for t in run(tmp_path, scenario_file, data)]
+    assert max(lat) - min(lat) < 0.15 * lat[0], lat
