@@ -25,7 +25,8 @@ Measured:
   `--warmup` unrecorded ones first. `window_size_mean` is the mean number of experiences per window
   (a full window holds (2*5+1) * (2*1+1) * 4 = 132).
 - `rss_mb`: VmRSS of the gp_store process after ingest and queries (`rss_idle_mb` before ingest,
-  `rss_peak_mb` its VmHWM); `db_mb`: the SQLite file plus its WAL.
+  `rss_peak_mb` its VmHWM; `rss_zenoh_shm_mb` the part that is Zenoh's shared-memory transport
+  buffers, mapped from /dev/shm and shared with the peers); `db_mb`: the SQLite file plus its WAL.
 
 Progress goes to stderr; the last stdout line is one JSON object. Every child is stopped in a `finally`.
 """
@@ -159,6 +160,22 @@ def proc_status_mb(pid: int) -> dict[str, float]:
     except OSError:
         pass
     return out
+
+
+def shm_rss_mb(pid: int) -> float:
+    """Resident pages of Zenoh's shared-memory segments (/dev/shm/*.zenoh) mapped into the process:
+    part of VmRSS, but shared with every peer on the host rather than the store's own memory."""
+    total, in_shm = 0, False
+    try:
+        for line in FsPath(f"/proc/{pid}/smaps").read_text().splitlines():
+            head = line.split()
+            if head and "-" in head[0] and not head[0].endswith(":"):
+                in_shm = len(head) >= 6 and head[-1].startswith("/dev/shm/")
+            elif in_shm and line.startswith("Rss:"):
+                total += int(head[1])
+    except OSError:
+        return float("nan")
+    return total / 1024.0
 
 
 def file_mb(*paths: FsPath) -> float:
@@ -301,6 +318,7 @@ def run_bench(args: argparse.Namespace) -> dict:
             log.info("%d window queries (+%d warmup)", args.queries, args.warmup)
             q = query_windows(node.session, bins, bins_cfg.v_bin_mps, args.queries, args.warmup, rng)
             mem = proc_status_mb(store_pid)
+            shm_mb = shm_rss_mb(store_pid)
             db_mb = file_mb(db_path, db_path.with_name(db_path.name + "-wal"))
             if launcher.exited():
                 c = launcher.exited()[0]
@@ -314,7 +332,8 @@ def run_bench(args: argparse.Namespace) -> dict:
 
     return {"n": args.n, "ingest_per_s": round(args.n / ing["ingest_s"], 1), **q,
             "rss_mb": round(mem.get("VmRSS", float("nan")), 2), "rss_peak_mb": round(mem.get("VmHWM", float("nan")), 2),
-            "rss_idle_mb": round(rss_idle, 2), "db_mb": round(db_mb, 3),
+            "rss_idle_mb": round(rss_idle, 2), "rss_zenoh_shm_mb": round(shm_mb, 2),
+            "db_mb": round(db_mb, 3),
             "ingest_s": round(ing["ingest_s"], 4), "publish_s": round(ing["publish_s"], 4),
             "ingested": path_stats.ingested, "retained": path_stats.retained, "bins": path_stats.bins,
             "acked": ing["acked"], "resent": ing["resent"], "batch": args.batch, "trials": work.trials,
