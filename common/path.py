@@ -126,6 +126,14 @@ class Path:
                           distance_m=float(self.s[a] + t * self.segment_lengths[a] + along_extra),
                           lateral_m=lateral, heading_rad=float(se2.wrap(T[2] - heading)), segment=a)
 
+    def tangent_at(self, distance_m):
+        """Direction (rad) of the route polyline at arc length(s): the segment's, not the taught
+        heading (which on a slope includes the robot's crab angle)."""
+        d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)
+        a = np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2)
+        diff = self.poses[a + 1, :2] - self.poses[a, :2]
+        return np.arctan2(diff[..., 1], diff[..., 0])
+
     def pose_at(self, distance_m):
         """Interpolated route pose(s) at arc length(s), clamped to the route: (3,) or (M, 3)."""
         d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)

@@ -7,8 +7,9 @@ from common.config import dump_toml
 from common.typecheck import to_dict
 from common.scenario import Scenario
 from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
-from services.controller.config import (ControllerConfig, FLConfig, ILCConfig, LimitsConfig, NMPCConfig,
-                                       StoreClientConfig)
+from services.controller.config import ControllerConfig, FLConfig, LimitsConfig, StoreClientConfig
+from services.controller.ilc import ILCGains
+from services.controller.nmpc import NMPCSettings
 from services.gp_store.config import BinConfig, FitConfig, StoreConfig
 from services.localizer.config import LocalizerConfig, PoseSourceConfig
 
@@ -37,8 +38,8 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         limits=LimitsConfig(v_max_mps=rp.v_max_mps, w_max_radps=rp.w_max_radps,
                             max_curvature_per_m=rp.max_curvature if rp.drive == "ackermann" else 0.0),
         fl=FLConfig(gamma1=ctl.fl_gamma1, gamma2=ctl.fl_gamma2, curvature_feedforward=ctl.curvature_feedforward),
-        ilc=ILCConfig(**to_dict(ctl.ilc)),
-        nmpc=NMPCConfig(horizon=ctl.horizon, **to_dict(ctl.nmpc)),
+        ilc=ILCGains(**to_dict(ctl.ilc)),
+        nmpc=NMPCSettings(horizon=ctl.horizon, **to_dict(ctl.nmpc)),
         store=StoreClientConfig(v_bin_mps=sc.store.v_bin_mps, c_vertex=sc.store.c_vertex,
                                 c_velocity=sc.store.c_velocity),
         data_dir=str(Path(data_dir) / "controller"))

@@ -333,8 +333,10 @@ OUTPUTS = ("summary.json", "report.html", "run.mcap", "config", "logs", "data")
 
 
 def prepare_out_dir(out: FsPath, overwrite: bool) -> None:
-    """A run starts from nothing learned: an output directory holding an earlier run (whose store and
-    routes would silently carry its learning over) is refused unless `overwrite` clears it."""
+    """A run started by the runner begins from nothing learned: an output directory holding an earlier
+    run (whose store, routes and ILC feedforwards would silently carry its learning over) is refused
+    unless `overwrite` clears it. With --connect, the deployment's own store and controller data are
+    used as they are: learning carries over between runs against the same deployment, by design."""
     import shutil
     earlier = [n for n in OUTPUTS if (out / n).exists()]
     if earlier and not overwrite:

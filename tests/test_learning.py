@@ -41,6 +41,17 @@ def test_ilc_experiment_1_cuts_max_errors_by_2_5_by_trial_6(tmp_path, scenario_f
     assert (tmp_path / "ilc1" / "data" / "controller" / "ilc" / "ilc1.ilc").exists()
 
 
+def test_without_learning_ilc_keeps_no_feedforward_and_repeats_its_first_trial(tmp_path, scenario_file):
+    trials = run(tmp_path, scenario_file, {
+        "name": "ilc_off", "seed": 1, "robot": {"preset": "husky"},
+        "path": {"waypoints": [[0, 0], [12, 0], [22, 5], [32, 5], [40, 0]], "teach_speed_mps": 0.5},
+        "terrain": SANDY_SLOPE, "localization": {"source": "pose", "noise_m": 0.01, "delay_s": 0.1},
+        "controller": {"algorithm": "ilc"}, "trials": {"count": 2, "speed": 0.5, "learning": False}})
+    lat = [t["max_lateral_m"] for t in trials]
+    assert abs(lat[1] - lat[0]) < 0.15 * lat[0], lat
+    assert not (tmp_path / "ilc_off" / "data" / "controller" / "ilc" / "ilc_off.ilc").exists()
+
+
 LBNMPC = {"name": "lbnmpc1", "seed": 11, "robot": {"preset": "husky"},
           "path": {"waypoints": [[0, 0], [10, 0], [18, 6], [26, 6], [30, 2]], "teach_speed_mps": 0.4},
           "terrain": LBNMPC_TERRAIN, "localization": {"source": "pose", "noise_m": 0.01},

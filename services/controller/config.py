@@ -4,6 +4,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from services.controller.ilc import ILCGains
+from services.controller.nmpc import NMPCSettings
+
 
 @dataclass(frozen=True, kw_only=True)
 class LimitsConfig:
@@ -17,38 +20,6 @@ class FLConfig:
     gamma1: float = 1.0
     gamma2: float = 1.8
     curvature_feedforward: bool = True
-
-
-@dataclass(frozen=True, kw_only=True)
-class ILCConfig:
-    """Eq. 3.14-3.16; see ilc.py."""
-    gamma_L: float = 0.8
-    gamma_H: float = 0.4
-    gamma_u: float = 1.0
-    lookahead: int = 4
-    ic_vertices: int = 8
-
-
-@dataclass(frozen=True, kw_only=True)
-class NMPCConfig:
-    """Eq. 5.3-5.16 weights and solver settings; see nmpc.py."""
-    horizon: int = 10
-    q_along: float = 1.0
-    q_lat: float = 40.0
-    q_head: float = 10.0
-    r_w: float = 0.2
-    r_dw: float = 1.0
-    q_terminal: float = 100.0
-    lookahead_m: float = 1.5
-    max_iter: int = 10
-    tol: float = 1e-3
-
-    def __post_init__(self):
-        if self.horizon < 1 or self.max_iter < 1 or min(self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw,
-                                                         self.q_terminal, self.lookahead_m) < 0:
-            raise ValueError("horizon and max_iter must be >= 1 and the weights >= 0")
-        if self.r_w + self.r_dw <= 0:
-            raise ValueError("r_w or r_dw must be > 0 (eq. 5.3 needs R positive definite)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -74,7 +45,7 @@ class ControllerConfig:
     route_timeout_s: float = 5.0
     limits: LimitsConfig
     fl: FLConfig = field(default_factory=FLConfig)
-    ilc: ILCConfig = field(default_factory=ILCConfig)
-    nmpc: NMPCConfig = field(default_factory=NMPCConfig)
+    ilc: ILCGains = field(default_factory=ILCGains)
+    nmpc: NMPCSettings = field(default_factory=NMPCSettings)
     store: StoreClientConfig = field(default_factory=StoreClientConfig)
     data_dir: str = ""   # where learned feedforwards (ILC) are kept, one file per route

@@ -19,6 +19,6 @@ class ControllerCore:
         obs = None
         if loc is not None and loc.status == "ok":
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
-        decision = self.tracker.step(now_s, loc)
+        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at)
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         return decision, obs

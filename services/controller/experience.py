@@ -81,6 +81,9 @@ class ExperienceBuilder:
         self._est: deque[_Estimate] = deque(maxlen=3)
         self._cmd: dict[int, tuple[float, float]] = {}
 
+    def command_at(self, tick: int) -> tuple[float, float] | None:
+        return self._cmd.get(tick)
+
     def add_command(self, tick: int, v: float, w: float) -> None:
         self._cmd[tick] = (v, w)
         for old in [t for t in self._cmd if t < tick - 50]:
@@ -89,7 +92,9 @@ class ExperienceBuilder:
     def add_estimate(self, tick: int, stamp_s: float, vertex: int, T_vertex_robot) -> Observation | None:
         pose = se2.compose(self.path.poses[vertex], T_vertex_robot)
         pr = self.path.project(pose, hint=vertex)
-        if self._est and tick <= self._est[-1].tick:
+        if self._est and tick == self._est[-1].tick:
+            return None        # the same estimate again (a realtime loop without a fresh one)
+        if self._est and tick < self._est[-1].tick:
             self._est.clear()  # clock went back (new trial): start over
         self._est.append(_Estimate(tick, stamp_s, vertex, pose, (pr.distance_m, pr.lateral_m, pr.heading_rad)))
         if len(self._est) < 3:

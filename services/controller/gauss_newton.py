@@ -8,6 +8,10 @@ cost the damping shrinks and the iteration is plain Gauss-Newton; when it does n
 far from its data can make the problem strongly nonlinear) the step shortens and turns towards the
 gradient, instead of oscillating. The step respects the bounds through a bounded linear least squares
 (scipy's BVLS) only when the plain step would leave them.
+
+For a real-time loop the work is bounded by a count of residual evaluations (deterministic, unlike a
+wall-clock deadline, so lockstep runs stay reproducible); the best point found is returned either way
+and the result says whether it converged. Non-finite residuals end the solve at the best finite point.
 """
 from __future__ import annotations
 
@@ -24,7 +28,9 @@ class GNResult:
     u: np.ndarray
     cost: float          # 1/2 ||r||^2 at u
     iterations: int
-    converged: bool
+    converged: bool      # the last step was below tol (else: out of budget, or stalled, see status)
+    evaluations: int = 0
+    status: str = "converged"   # converged | budget | stalled | non-finite
 
 
 def _step(J: np.ndarray, r: np.ndarray, mu: float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -43,31 +49,44 @@ def _step(J: np.ndarray, r: np.ndarray, mu: float, lo: np.ndarray, hi: np.ndarra
     return lsq_linear(A, b, bounds=(lo, hi), method="bvls").x
 
 
+def _finite(r: np.ndarray, J: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(r)) and np.all(np.isfinite(J)))
+
+
 def gauss_newton(residual: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], u0: np.ndarray,
                  lower: np.ndarray, upper: np.ndarray, *, max_iter: int = 20, tol: float = 1e-5,
-                 mu0: float = 0.0) -> GNResult:
+                 mu0: float = 0.0, max_evals: int | None = None) -> GNResult:
     """`residual(u)` returns (r, J = dr/du). Starts undamped (mu0 = 0: pure Gauss-Newton, which for a
-    linear model solves the problem exactly in one step); the damping only appears when needed."""
+    linear model solves the problem exactly in one step); the damping only appears when needed.
+    `max_evals` caps the residual evaluations (default 2 * max_iter + 1)."""
+    budget = 2 * max_iter + 1 if max_evals is None else max_evals
     u = np.clip(np.asarray(u0, dtype=float), lower, upper)
     r, J = residual(u)
+    evals = 1
+    if not _finite(r, J):
+        return GNResult(u, float("inf"), 0, False, evals, "non-finite")
     cost = 0.5 * float(r @ r)
     mu = mu0
     scale = max(float(np.max(np.sum(J * J, axis=0))), 1e-12) if J.size else 1.0
     for it in range(1, max_iter + 1):
         while True:
+            if evals >= budget:
+                return GNResult(u, cost, it, False, evals, "budget")
             du = _step(J, r, mu, lower - u, upper - u)
             trial = np.clip(u + du, lower, upper)
             moved = float(np.max(np.abs(trial - u))) if len(u) else 0.0
             if moved < tol:
-                # converged: the remaining step is below the resolution that matters; stop here
-                return GNResult(u, cost, it, True)
+                # converged (or damped to a standstill): the remaining step is below what matters
+                return GNResult(u, cost, it, mu == 0.0 or mu <= 1e-3 * scale, evals,
+                                "converged" if mu <= 1e-3 * scale else "stalled")
             r_t, J_t = residual(trial)
-            new_cost = 0.5 * float(r_t @ r_t)
+            evals += 1
+            new_cost = 0.5 * float(r_t @ r_t) if _finite(r_t, J_t) else float("inf")
             if new_cost <= cost:
                 mu = mu / 3.0 if mu > 1e-9 * scale else 0.0
                 break
             mu = max(4.0 * mu, 1e-4 * scale)
             if mu > 1e6 * scale:  # no step lowers the cost: this is a (local) minimum
-                return GNResult(u, cost, it, True)
+                return GNResult(u, cost, it, True, evals, "converged")
         u, r, J, cost = trial, r_t, J_t, new_cost
-    return GNResult(u, cost, max_iter, False)
+    return GNResult(u, cost, max_iter, False, evals, "budget")

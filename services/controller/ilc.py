@@ -27,13 +27,18 @@ from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import LawResult, StepContext
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ILCGains:
+    """Eq. 3.14-3.16 gains; also the controller config's [ilc] table."""
     gamma_L: float = 0.8      # rad/s per m of lookahead lateral error
     gamma_H: float = 0.4      # rad/s per unit sin(heading error)
     gamma_u: float = 1.0      # forgetting factor (thesis exp. 1: 1.0; < 1 forgets non-repeating disturbances)
     lookahead: int = 4        # kappa, vertices
     ic_vertices: int = 8      # m_ic of eq. 3.16
+
+    def __post_init__(self):
+        if self.lookahead < 1 or self.ic_vertices < 0 or not 0.0 <= self.gamma_u <= 1.0:
+            raise ValueError("lookahead >= 1, ic_vertices >= 0 and gamma_u in [0, 1] required")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -25,10 +25,14 @@ class StepContext:
     e_head_rad: float
     v_mps: float                # linear speed the tracker commands this step
     speed_at: Callable[[float], float]   # commanded speed at a distance along the route (schedule + end)
-    prev_cmd: tuple[float, float]        # u_{k-1}
-    prev_pose: np.ndarray | None         # estimate one period earlier (for v_{k-1}, thesis 5.3.1)
+    prev_cmd: tuple[float, float]        # u_{k-1}, the command applied during the last period
+    prev_pose: np.ndarray | None         # estimate one period before `pose` (for v_{k-1}, thesis 5.3.1)
     w_limit: float              # |w| the tracker will allow at v_mps
     w_limit_at: Callable[[float], float]  # the same bound for another speed
+    # localization delay (eq. 7.12): `pose` was captured D periods ago; these are the D commands applied
+    # since (oldest first) and the one applied just before the capture, when known
+    delayed_cmds: tuple[tuple[float, float], ...] = ()
+    cmd_before_capture: tuple[float, float] | None = None
 
 
 @dataclass

@@ -11,10 +11,14 @@ optimized by Gauss-Newton (eq. 5.5-5.10) with the actuator (and Ackermann steeri
 warm-started from the previous solution shifted by one step.
 
 Cost (eq. 5.16): for j = 1..K the error of x_j against the desired state x_{d,j}, the taught route's pose
-where the schedule puts the robot after j periods, expressed in that pose's frame (along, lateral,
-heading) and weighted by Q = diag(q_along, q_lat, q_head); plus R times the deviation of w_j from the
-route's own turn rate v_j kappa. (The thesis penalizes u itself; penalizing the deviation from the
-route's turn rate keeps the optimum on curved routes from being biased towards driving straight.)
+where the schedule puts the robot after j periods: along and lateral along the route's direction there,
+heading against the taught heading (the same definitions the experiences use), weighted by
+Q = diag(q_along, q_lat, q_head); plus R times the deviation of w_j from the route's own turn rate
+v_j kappa (the thesis penalizes u itself; the deviation keeps the optimum on curved routes from being
+biased towards driving straight), an input-rate term, and a terminal term on the lateral error
+`lookahead_m` ahead of x_K (a one-second horizon is too short to see a lateral correction pay off).
+A delayed estimate is first carried forward to now through the commands applied since its capture
+(the mean of eq. 7.12).
 
 All Jacobians are analytic: forward sensitivities of the rollout with the GP's mean gradient
 (`GaussianProcess.mean_and_grad`), no finite differences in the loop.
@@ -35,18 +39,27 @@ class DisturbanceModel(Protocol):
     def mean_and_grad(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class NMPCSettings:
+    """Weights and solver settings; also the controller config's [nmpc] table (one set of defaults)."""
     horizon: int = 10
     q_along: float = 1.0      # 1/m^2
     q_lat: float = 40.0       # 1/m^2
     q_head: float = 10.0      # 1/rad^2
-    r_w: float = 1.0          # s^2/rad^2, on w - v kappa
-    r_dw: float = 0.0         # s^2/rad^2, on w_j - w_{j-1}
-    q_terminal: float = 0.0   # 1/m^2, on the lateral error lookahead_m ahead of the last predicted pose
-    lookahead_m: float = 1.0
+    r_w: float = 0.2          # s^2/rad^2, on w - v kappa
+    r_dw: float = 1.0         # s^2/rad^2, on w_j - w_{j-1}
+    q_terminal: float = 100.0 # 1/m^2, on the lateral error lookahead_m ahead of the last predicted pose
+    lookahead_m: float = 1.5
     max_iter: int = 10
+    max_evals: int = 12       # residual evaluations per step at most: bounds the solve time
     tol: float = 1e-3         # rad/s: stop when no angular rate moves more than this
+
+    def __post_init__(self):
+        if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
+                self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw, self.q_terminal, self.lookahead_m) < 0:
+            raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
+        if self.r_w + self.r_dw <= 0:
+            raise ValueError("r_w or r_dw must be > 0 (eq. 5.3 needs R positive definite)")
 
 
 @dataclass
@@ -65,7 +78,7 @@ class HorizonProblem:
 
     def __init__(self, x0, desired: np.ndarray, s_desired: np.ndarray, v: np.ndarray, w_ref: np.ndarray,
                  dt: float, settings: NMPCSettings, model: DisturbanceModel | None,
-                 v_prev_act: tuple[float, float], u_prev: tuple[float, float]):
+                 v_prev_act: tuple[float, float], u_prev: tuple[float, float], tangent: np.ndarray | None = None):
         self.x0 = np.asarray(x0, dtype=float)
         self.D = desired            # (K+1, 3): D[0] is the route pose at the robot, D[j] the desired x_j
         self.sD = s_desired         # (K+1,) arc length of D[j]
@@ -81,8 +94,11 @@ class HorizonProblem:
         self.sqrt_r = math.sqrt(settings.r_w)
         self.sqrt_dr = math.sqrt(settings.r_dw)
         self.sqrt_qt = math.sqrt(settings.q_terminal)
-        self.cD = np.cos(self.D[:, 2])
-        self.sinD = np.sin(self.D[:, 2])
+        # along/lateral errors are taken along the route's direction (as experiences measure them);
+        # the heading error against the taught heading D[:, 2]
+        direction = self.D[:, 2] if tangent is None else tangent
+        self.cD = np.cos(direction)
+        self.sinD = np.sin(direction)
 
     def rollout(self, w: np.ndarray, with_jac: bool):
         """Predicted poses (K+1, 3) and, with_jac, their sensitivities dX/dw (K+1, 3, K).
@@ -189,33 +205,60 @@ class HorizonProblem:
                            + extra @ extra)
 
 
+def _propagate_delay(ctx: StepContext, dt: float, model: DisturbanceModel | None,
+                     v_prev: tuple[float, float]):
+    """Eq. 7.12 (its mean): carry the estimate, captured D periods ago, forward through the D commands
+    applied since, with the same model the horizon uses, so that the problem starts from now and its
+    first a-vector pairs the right pose, velocities and commands (as experiences were built)."""
+    x = np.array(ctx.pose, dtype=float)
+    u_before = ctx.cmd_before_capture if ctx.cmd_before_capture is not None else ctx.delayed_cmds[0]
+    hint = ctx.vertex
+    for v_i, w_i in ctx.delayed_cmds:
+        g = np.zeros(3)
+        if model is not None:
+            pr = ctx.path.project(x, hint)
+            hint = pr.vertex
+            a = np.array([pr.distance_m, pr.lateral_m, pr.heading_rad, *v_prev, v_i, w_i, *u_before])
+            g = model.mean_and_grad(a)[0]
+        c, s = math.cos(x[2]), math.sin(x[2])
+        x_next = np.array([x[0] + v_i * dt * c + c * g[0] - s * g[1], x[1] + v_i * dt * s + s * g[0] + c * g[1],
+                           x[2] + w_i * dt + g[2]])
+        v_prev = ((c * (x_next[0] - x[0]) + s * (x_next[1] - x[1])) / dt, (x_next[2] - x[2]) / dt)
+        u_before = (v_i, w_i)
+        x = x_next
+    return x, ctx.path.project(x, hint).distance_m, v_prev, u_before
+
+
 def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
                   model: DisturbanceModel | None) -> tuple[HorizonProblem, np.ndarray]:
     """Desired states, speeds, reference turn rates and bounds for this step; returns (problem, w_limit)."""
     K = settings.horizon
     path = ctx.path
-    s_d = np.empty(K + 1)
-    v = np.empty(K)
-    s_d[0] = ctx.s_m
-    for j in range(K):
-        v[j] = ctx.v_mps if j == 0 else ctx.speed_at(s_d[j])
-        s_d[j + 1] = s_d[j] + v[j] * dt
-    desired = path.pose_at(s_d)
-    kappa = np.interp(s_d[:-1], path.s, path.curvature)
-    w_ref = v * kappa
-    w_limit = np.array([ctx.w_limit_at(vj) for vj in v])
     if ctx.prev_pose is not None:
         pp, x0 = ctx.prev_pose, ctx.pose
         c, s = math.cos(pp[2]), math.sin(pp[2])
         v_prev = ((c * (x0[0] - pp[0]) + s * (x0[1] - pp[1])) / dt,
                   math.remainder(x0[2] - pp[2], 2 * math.pi) / dt)
     else:
-        v_prev = ctx.prev_cmd   # no previous estimate: assume the robot did what it was told
-    # keep the heading continuous with the desired ones (no 2*pi jumps inside the rollout)
-    x0 = np.array(ctx.pose, dtype=float)
+        v_prev = ctx.cmd_before_capture or ctx.prev_cmd   # no earlier estimate: as commanded
+    x0, s0, u_prev = np.array(ctx.pose, dtype=float), ctx.s_m, ctx.prev_cmd
+    if ctx.delayed_cmds:
+        x0, s0, v_prev, u_prev = _propagate_delay(ctx, dt, model, v_prev)
+    s_d = np.empty(K + 1)
+    v = np.empty(K)
+    s_d[0] = s0
+    for j in range(K):
+        v[j] = ctx.v_mps if j == 0 else ctx.speed_at(s_d[j])
+        s_d[j + 1] = s_d[j] + v[j] * dt
+    desired = path.pose_at(s_d)          # taught headings: what the heading error is measured against
+    tangent = path.tangent_at(s_d)       # route direction: what along/lateral errors are measured along
+    kappa = np.interp(s_d[:-1], path.s, path.curvature)
+    w_ref = v * kappa
+    w_limit = np.array([ctx.w_limit_at(vj) for vj in v])
+    # keep headings continuous with the desired ones (no 2*pi jumps inside the rollout)
     x0[2] = desired[0, 2] + math.remainder(x0[2] - desired[0, 2], 2 * math.pi)
     desired[:, 2] = desired[0, 2] + np.unwrap(desired[:, 2] - desired[0, 2])
-    problem = HorizonProblem(x0, desired, s_d, v, w_ref, dt, settings, model, v_prev, ctx.prev_cmd)
+    problem = HorizonProblem(x0, desired, s_d, v, w_ref, dt, settings, model, v_prev, u_prev, tangent)
     return problem, w_limit
 
 
@@ -240,7 +283,7 @@ class LBNMPCLaw:
         else:
             u0 = problem.w_ref.copy()
         res = gauss_newton(problem.residual, u0, -w_limit, w_limit, max_iter=self.settings.max_iter,
-                           tol=self.settings.tol)
+                           tol=self.settings.tol, max_evals=self.settings.max_evals)
         self._prev = res.u
         X, _ = problem.rollout(res.u, with_jac=False)
         self.last_plan = Plan(res.u, X, problem.D, res.cost, res.iterations, res.converged)

@@ -22,14 +22,13 @@ from common.messages import Clock, ControllerStatus, LocState, RouteMsg, Velocit
 from common.path import Path
 from common.service import Control, Service, service_main
 from common.store_client import ExperienceOutbox, WindowCache
-from common.typecheck import to_dict
 from services.controller.config import ControllerConfig
 from services.controller.core import ControllerCore
 from services.controller.fl import FLGains
-from services.controller.ilc import ILCGains, ILCLaw, ILCMemory
+from services.controller.ilc import ILCLaw, ILCMemory
 from services.controller.laws import FLLaw, SteeringLaw
 from services.controller.local_model import LocalModels
-from services.controller.nmpc import LBNMPCLaw, NMPCSettings
+from services.controller.nmpc import LBNMPCLaw
 from services.controller.tracker import PathTracker, TrackerLimits
 
 AVAILABLE_ALGORITHMS = ("fl", "ilc", "lb-nmpc")
@@ -54,6 +53,7 @@ class ControllerService(Service):
         self.trial = 0
         self.path_id = ""
         self.latest_loc: LocState | None = None
+        self._stepped_capture = -1
         self.clock = node.subscribe_latest(keys.clock(r), Clock)
         node.subscribe_queue(keys.loc_state(r), LocState, self.inbox)
         lim = cfg.limits
@@ -119,10 +119,7 @@ class ControllerService(Service):
                 raise ValueError("ILC keeps its feedforward per route on disk: set data_dir")
             self.ilc = ILCMemory.load(FsPath(self.cfg.data_dir) / "ilc", path_id, len(path))
             return ILCLaw(self.gains, self.ilc), self.cfg.ilc.ic_vertices
-        n = self.cfg.nmpc
-        settings = NMPCSettings(horizon=n.horizon, q_along=n.q_along, q_lat=n.q_lat, q_head=n.q_head, r_w=n.r_w,
-                                r_dw=n.r_dw, q_terminal=n.q_terminal, lookahead_m=n.lookahead_m,
-                                max_iter=n.max_iter, tol=n.tol)
+        settings = self.cfg.nmpc
         if self.cache is not None:
             cache = self.cache
 
@@ -131,14 +128,14 @@ class ControllerService(Service):
                 return data.A, data.G
             # learning off: the same controller on its nominal model only
             self.models = LocalModels(window, lambda: cache.hyper if self.learning else None,
-                                      n.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps)
+                                      settings.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps)
         return LBNMPCLaw(settings, self.cfg.period_s, self.models.model_for if self.models else (lambda ctx: None)), 0
 
     def _learn_ilc(self) -> str:
         """Eq. 3.14 after a trial, saved per route; nothing is learned when learning is off."""
         if not self.learning:
             return "ILC learning off: feedforward unchanged"
-        change = self.ilc.update(ILCGains(**to_dict(self.cfg.ilc)))
+        change = self.ilc.update(self.cfg.ilc)
         where = self.ilc.save(FsPath(self.cfg.data_dir) / "ilc")
         return f"ILC feedforward updated (trial {self.ilc.trials}, largest change {change:.3f} rad/s), saved to {where}"
 
@@ -170,8 +167,14 @@ class ControllerService(Service):
                 next_wall = time.monotonic()
             clock, _ = self.clock.get()
             if self.core is not None and clock is not None:
-                # robot time now: the newest clock tick from the bridge
-                self._step(now_s=clock.stamp_s, tick=clock.tick, loc=self.latest_loc)
+                # robot time now: the newest clock tick from the bridge; an estimate is used once, after
+                # that the tracker holds (or stops) as it does through any gap in localization
+                loc = self.latest_loc
+                if loc is not None and loc.capture_tick == self._stepped_capture:
+                    loc = None
+                elif loc is not None:
+                    self._stepped_capture = loc.capture_tick
+                self._step(now_s=clock.stamp_s, tick=clock.tick, loc=loc)
 
     def _step(self, now_s: float, tick: int, loc: LocState | None) -> None:
         t0 = time.perf_counter()
@@ -193,7 +196,7 @@ class ControllerService(Service):
         pred = d.predicted if d.predicted is not None else np.zeros((0, 3))
         self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
                                                       v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
-        self.node.publish(self.k_status, ControllerStatus(
+        status = ControllerStatus(
             stamp_s=now_s, tick=tick, trial=self.trial, algorithm=self.cfg.algorithm, state=d.state,
             reason=d.reason, path_id=self.path_id, vertex=d.vertex, distance_m=d.distance_m,
             lateral_m=d.lateral_m, heading_rad=d.heading_rad, v_cmd_mps=d.v_mps, w_cmd_radps=d.w_radps,
@@ -203,7 +206,9 @@ class ControllerService(Service):
             experiences_pending=self.outbox.pending if self.outbox else 0,
             window_experiences=window_n, hyper_version=hyper_version,
             w_ff_radps=float((d.info or {}).get("w_ff", 0.0)), pred_x_m=pred[:, 0].tolist(),
-            pred_y_m=pred[:, 1].tolist(), pred_theta_rad=pred[:, 2].tolist()))
+            pred_y_m=pred[:, 1].tolist(), pred_theta_rad=pred[:, 2].tolist())
+        # the command must arrive; a status may be dropped under congestion rather than stall the loop
+        self.node.publish(self.k_status, status, droppable=True)
 
     def close(self) -> None:
         if self.cache is not None:

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from common import se2
 from common.messages import LocState
 from common.path import Path
+from services.controller.fl import FLGains
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 
 
@@ -60,6 +62,7 @@ class PathTracker:
         self._prev_pose: tuple[int, np.ndarray] | None = None   # (capture tick, pose) one estimate back
         self._initial_error: tuple[float, float] | None = None
         self._last_cmd = (0.0, 0.0)
+        self._fallback = FLLaw(FLGains())
 
     def scheduled_speed(self, distance_m: float) -> float:
         """Speed at a place on the route: one fixed speed for now; per-vertex schedules plug in here."""
@@ -84,7 +87,10 @@ class PathTracker:
         pr = self.path.project(pose, hint=loc.vertex)
         return pose, pr.distance_m, pr.lateral_m, pr.heading_rad
 
-    def step(self, now_s: float, loc: LocState | None) -> Decision:
+    def step(self, now_s: float, loc: LocState | None, tick: int | None = None,
+             command_at: Callable[[int], tuple[float, float] | None] | None = None) -> Decision:
+        """`tick`: the robot tick this command will be applied at; `command_at(t)`: the command applied
+        at tick t. With both, the law learns which commands were applied since the estimate's capture."""
         if loc is not None and loc.status == "ok":
             self._last_ok = loc
         last = self._last_ok
@@ -124,13 +130,27 @@ class PathTracker:
         self._prev_pose = (last.capture_tick, pose)
         law_lat, law_head = self._smoothed(vertex, lat, head)
         v = self.speed_at(dist)
+        delayed, before = (), None
+        if tick is not None and command_at is not None and tick > last.capture_tick:
+            cmds = [command_at(t) for t in range(last.capture_tick, tick)]
+            if all(c is not None for c in cmds):
+                delayed, before = tuple(cmds), command_at(last.capture_tick - 1)
         ctx = StepContext(now_s=now_s, path=self.path, vertex=vertex, pose=pose, s_m=dist, e_lat_m=law_lat,
                           e_head_rad=law_head, v_mps=v, speed_at=self.speed_at, prev_cmd=self._last_cmd,
-                          prev_pose=prev_pose, w_limit=self.limits.w_limit(v), w_limit_at=self.limits.w_limit)
-        res: LawResult = self.law.angular(ctx)
+                          prev_pose=prev_pose, w_limit=self.limits.w_limit(v), w_limit_at=self.limits.w_limit,
+                          delayed_cmds=delayed, cmd_before_capture=before)
+        reason = ""
+        try:
+            res: LawResult = self.law.angular(ctx)
+            if not math.isfinite(res.w_radps):
+                raise FloatingPointError(f"{self.law.name} returned w = {res.w_radps}")
+        except Exception as exc:  # numerical trouble in a law must not become a wild command
+            res = self._fallback.angular(ctx)
+            reason = f"{self.law.name} failed ({type(exc).__name__}: {exc}); feedback linearization this step"
         w = max(-ctx.w_limit, min(ctx.w_limit, res.w_radps))
         self._last_cmd = (v, w)
-        return Decision(v, w, "tracking", "", vertex, dist, lat, head, age, res.iterations, res.predicted, res.info)
+        return Decision(v, w, "tracking", reason, vertex, dist, lat, head, age, res.iterations, res.predicted,
+                        res.info)
 
     def _smoothed(self, vertex: int, lat: float, head: float) -> tuple[float, float]:
         """Eq. 3.16: over the first m_ic vertices the desired path blends from where the robot started
