@@ -87,7 +87,7 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
                     keep_every: int):
     models = LocalModels(lambda v, s: windows[(v, int(math.floor(s / POLICY.v_bin_mps)))], lambda: hyper,
                          settings.horizon * DT, POLICY.v_bin_mps)
-    times, sizes, kept = [], [], []
+    times, sizes, kept, evals, statuses = [], [], [], [], []
 
     class Timed(LBNMPCLaw):
         def angular(self, ctx):
@@ -97,13 +97,15 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
             res = super().angular(ctx)
             times.append((time.perf_counter() - t0) * 1e3)
             sizes.append(models.last_n)
+            evals.append(res.info.get("evaluations", 0))
+            statuses.append(res.info.get("status", ""))
             if u0 is not None and len(times) % keep_every == 0:
                 kept.append((ctx, models.model_for(ctx), u0))
             return res
 
     law = Timed(settings, DT, models.model_for)
     cl.repeat(trial + 1, SPEEDS[1], law=law)
-    return np.array(times), np.array(sizes), kept
+    return np.array(times), np.array(sizes), kept, np.array(evals), statuses
 
 
 def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.ndarray):
@@ -183,17 +185,22 @@ def run_bench(args) -> dict:
         cl, path, hyper, windows, trials, n = build_memory(args.seed, work)
         log.info("route %.1f m, %d experiences retained from %d FL trials, hyperparameters in %.1f s (%.1f s)",
                  path.length_m, n, trials, hyper.fit_s, time.perf_counter() - t0)
-        times, sizes, kept = time_controller(cl, hyper, windows, trials, settings, args.keep_every)
+        times, sizes, kept, evals, statuses = time_controller(cl, hyper, windows, trials, settings, args.keep_every)
         log.info("LB-NMPC: %d steps, window mean %.0f max %d", len(times), sizes.mean(), sizes.max())
         result = {"algorithm": args.algorithm, "horizon": args.horizon, "window": round(float(sizes.mean()), 1),
                   "window_max": int(sizes.max()), "solve_ms_p50": round(float(np.percentile(times, 50)), 3),
                   "solve_ms_p99": round(float(np.percentile(times, 99)), 3),
                   "solve_ms_mean": round(float(times.mean()), 3), "steps": len(times), "pinned": pinned,
+                  "evaluations_p50": float(np.percentile(evals, 50)), "evaluations_p99": float(np.percentile(evals, 99)),
+                  "not_converged": sum(s != "converged" for s in statuses), "max_evals": settings.max_evals,
                   "casadi_solve_ms_p50": None, "cost_gap": None}
         try:
             import casadi  # noqa: F401  (optional benchmark dependency)
         except ImportError:
             log.warning("casadi not installed (pip install casadi): no IPOPT comparison")
+            return result
+        if not kept:
+            log.warning("no problems kept for the IPOPT comparison (lower --keep-every)")
             return result
         ratios, gaps, ipopt_ms = [], [], []
         for ctx, model, u0 in kept:

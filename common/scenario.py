@@ -127,7 +127,7 @@ class NMPCSection:
     q_terminal: float = 100.0
     lookahead_m: float = 1.5
     max_iter: int = 10
-    max_evals: int = 12
+    max_evals: int = 6
 
 
 @dataclass(frozen=True, kw_only=True)

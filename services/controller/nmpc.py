@@ -51,7 +51,7 @@ class NMPCSettings:
     q_terminal: float = 100.0 # 1/m^2, on the lateral error lookahead_m ahead of the last predicted pose
     lookahead_m: float = 1.5
     max_iter: int = 10
-    max_evals: int = 12       # residual evaluations per step at most: bounds the solve time
+    max_evals: int = 6        # residual evaluations per step at most: bounds the solve time
     tol: float = 1e-3         # rad/s: stop when no angular rate moves more than this
 
     def __post_init__(self):
@@ -288,4 +288,5 @@ class LBNMPCLaw:
         X, _ = problem.rollout(res.u, with_jac=False)
         self.last_plan = Plan(res.u, X, problem.D, res.cost, res.iterations, res.converged)
         return LawResult(float(res.u[0]), res.iterations, X[1:],
-                         {"cost": res.cost, "converged": res.converged, "learned": model is not None})
+                         {"cost": res.cost, "converged": res.converged, "status": res.status,
+                          "evaluations": res.evaluations, "learned": model is not None})
