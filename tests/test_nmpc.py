@@ -200,3 +200,26 @@ def test_illustrative_example_feedback_worse_than_nmpc_worse_than_lb_nmpc():
         runs.append(data)
     assert rms_fb > rms_nmpc > rms_lb[-1]
     assert max(rms_lb[1:]) <= 0.5 * rms_nmpc, (rms_fb, rms_nmpc, rms_lb)
+
+
+def test_nmpc_drives_an_ackermann_robot_within_its_steering_limit():
+    """The MATS preset through eq. 5.27: the NMPC plans unicycle rates, bounded by v tan(steer_max) / L."""
+    from bench.closed_loop import ClosedLoop
+    from common.robot import PRESETS
+    from services.controller.nmpc import LBNMPCLaw
+    mats = PRESETS["mats"]
+    sim = ClosedLoop([[0, 0], [15, 0], [30, 10], [30, 25]], preset="mats", seed=1, teach_speed=0.8)
+    sim.teach()
+    commands = []
+
+    class Recorded(LBNMPCLaw):
+        def angular(self, ctx):
+            res = super().angular(ctx)
+            commands.append((ctx.v_mps, res.w_radps))
+            return res
+
+    r = sim.repeat(1, 1.0, law=Recorded(NMPCSettings(), 0.1))
+    assert r.finished and r.max_lateral < 0.15
+    v, w = np.array(commands).T
+    assert np.all(np.abs(w) <= v * mats.max_curvature + 1e-9)
+    assert np.max(np.abs(w) / np.maximum(v, 1e-3)) > 0.5 * mats.max_curvature   # it did steer hard somewhere
