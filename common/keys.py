@@ -100,6 +100,14 @@ def store_dump(path_id: str) -> str:
     return _store(path_id, "dump")
 
 
+def sched_schedule(path_id: str) -> str:
+    return f"{ROOT}/sched/{check_name('path_id', path_id) if path_id != '*' else '*'}/schedule"
+
+
+def sched_update(path_id: str) -> str:
+    return f"{ROOT}/sched/{check_name('path_id', path_id) if path_id != '*' else '*'}/update"
+
+
 def store_stats() -> str:
     return f"{ROOT}/store/stats"
 
@@ -122,6 +130,8 @@ def message_type(key: str) -> type | None:
         return m.AliveEvent
     if len(parts) >= 3 and parts[0] == ROOT and parts[1] == "paths":
         return m.RouteMsg
+    if len(parts) == 4 and parts[:2] == [ROOT, "sched"]:
+        return {"schedule": m.SpeedSchedule, "update": m.ScheduleUpdate}.get(parts[3])
     if len(parts) == 4 and parts[:2] == [ROOT, "store"]:
         return {"hyper": m.HyperMsg, "window": m.ExperienceWindow, "fit": m.HyperMsg,
                 "dump": m.ExperienceBatch}.get(parts[3])

@@ -185,6 +185,7 @@ class ControlRequest(Message):
     max_duration_s: float
     learning: bool
     loop: bool
+    schedule: bool = False          # repeat at the scheduler's latest schedule for the route
 
     def __post_init__(self):
         check_name("path_id", self.path_id)
@@ -358,8 +359,44 @@ class StoreStats(Message):
     paths: list[PathStats]
 
 
+# --- speed schedules (thesis chapter 4) -------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class SpeedSchedule(Message):
+    """Scheduled speed at every vertex of a route. Version 1 is the first trial's (v_init); each later
+    one was computed from one robot's trial (`based_on_robot`, `based_on_trial`)."""
+    MAX_BYTES: ClassVar[int] = 8 * 1024 * 1024
+    stamp_s: float
+    path_id: str
+    version: int
+    based_on_robot: str
+    based_on_trial: int
+    v_mps: list[float]
+    decisions: list[int]            # eq. 4.2 per vertex: +1 increase, 0 keep, -1 decrease
+    notes: list[str]
+
+    def __post_init__(self):
+        check_name("path_id", self.path_id)
+        if len(self.decisions) != len(self.v_mps) or not self.v_mps:
+            raise ValueError("v_mps and decisions must be non-empty and of equal length")
+        if min(self.v_mps) <= 0:
+            raise ValueError("scheduled speeds must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScheduleUpdate(Message):
+    """Ask the scheduler for the next schedule from a finished trial of `robot` on `path_id`."""
+    stamp_s: float
+    path_id: str
+    robot: str
+    trial: int
+
+    def __post_init__(self):
+        check_name("path_id", self.path_id)
+        check_name("robot", self.robot)
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     Clock, Odometry, TruthPose, LocState, VelocityCommand, ControllerStatus, BridgeStatus,
     TrialEvent, ControlRequest, ControlReply, RouteMsg, AliveEvent, Experience, ExperienceBatch, ExperienceAck,
-    ExperienceWindow, HyperDim, HyperMsg, PathStats, StoreStats,
+    ExperienceWindow, HyperDim, HyperMsg, PathStats, StoreStats, SpeedSchedule, ScheduleUpdate,
 )

@@ -157,19 +157,27 @@ class ConstraintsSection:
 
 @dataclass(frozen=True, kw_only=True)
 class SchedulerSection:
-    """Thesis chapter 4 / table 5.1 names. The scheduler service itself is a later issue."""
+    """[scheduler]: thesis chapter 4 (names of table 5.1; defaults of its section 4.3.2). lambda_L in m,
+    lambda_H in degrees, lambda_omega in rad/s, accelerations in m/s^2; the first and last start_m /
+    end_m metres are limited to v_start / v_end (eq. 4.3)."""
     enabled: bool = False
     v_init: float = 0.5
     v_max: float = 2.0
-    gamma1: float = 0.15
-    gamma2: float = 0.1
+    gamma1: float = 0.2
+    gamma2: float = 0.24
     lambda_L: float = 0.15
     lambda_H: float = 10.0
     lambda_feat: float = 30.0
     lambda_omega: float = 1.0
     lambda_db: float = 1.1
-    a_max: float = 0.5
-    a_min: float = -0.5
+    a_max: float = 0.2
+    a_min: float = -0.05
+    v_start: float = 0.4
+    start_m: float = 5.0
+    v_end: float = 0.4
+    end_m: float = 5.0
+    prune_min_m: float = 2.0
+    use_all_trials: bool = False     # beyond the thesis (4.4): never raise a vertex to where it failed
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -39,7 +39,7 @@ def _launch(args) -> int:
     from common.bus import install_stop_handlers
     from common.scenario import load_scenario
     from deploy.configs import service_configs, write_service_configs
-    from deploy.experiment import SERVICES, check_supported
+    from deploy.experiment import check_supported, services_of
     from deploy.launcher import Launcher
     try:
         sc = load_scenario(args.scenario)
@@ -54,9 +54,9 @@ def _launch(args) -> int:
     install_stop_handlers(stop)
     with Launcher(endpoint, base / "logs") as launcher:
         launcher.start_router(args.port)
-        for s in SERVICES:
+        for s in services_of(sc):
             launcher.start_service(s, paths[s], args.log_level)
-        print(f"router on {endpoint}; services {', '.join(SERVICES)}; logs in {base / 'logs'}. "
+        print(f"router on {endpoint}; services {', '.join(services_of(sc))}; logs in {base / 'logs'}. "
               f"Run: lbc experiment run {args.scenario} --out DIR --connect {endpoint}   (Ctrl-C stops)",
               file=sys.stderr)
         while not stop.wait(0.5):

@@ -11,6 +11,8 @@ from services.controller.config import ControllerConfig, FLConfig, LimitsConfig,
 from services.controller.ilc import ILCGains
 from services.controller.nmpc import NMPCSettings
 from services.gp_store.config import BinConfig, FitConfig, StoreConfig
+from services.scheduler.config import SchedulerConfig
+from services.scheduler.core import SchedulerParams
 from services.localizer.config import LocalizerConfig, PoseSourceConfig
 
 
@@ -49,7 +51,13 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         bins=BinConfig(v_bin_mps=st.v_bin_mps, c_bin=st.c_bin, c_vertex=st.c_vertex, c_velocity=st.c_velocity),
         # the experiment runner asks for a fit after every trial and waits for it: no automatic fits
         fit=FitConfig(restarts=st.fit_restarts, max_points=st.fit_max_points, seed=sc.seed, auto_after_trial=False))
-    return {"bridge": bridge, "localizer": localizer, "controller": controller, "gp_store": gp_store}
+    configs = {"bridge": bridge, "localizer": localizer, "controller": controller, "gp_store": gp_store}
+    if sc.scheduler.enabled:
+        params = {k: v for k, v in to_dict(sc.scheduler).items() if k != "enabled"}
+        params["v_max"] = min(params["v_max"], rp.v_max_mps)    # the robot's own limit is an a-priori one
+        configs["scheduler"] = SchedulerConfig(name="scheduler1", db_path=str(Path(data_dir) / "schedules.db"),
+                                               params=SchedulerParams(**params), auto_after_trial=False)
+    return configs
 
 
 def write_service_configs(configs: dict[str, object], directory: str | Path) -> dict[str, Path]:

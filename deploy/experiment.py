@@ -16,6 +16,7 @@ import time
 from pathlib import Path as FsPath
 from typing import Any, TextIO
 
+import numpy as np
 import zenoh
 
 from common import keys
@@ -23,7 +24,7 @@ from common.bus import open_session, query, query_one
 from common.codec import Decoder, decode, encode
 from common.config import ConfigError
 from common.messages import (ControllerStatus, ControlReply, ControlRequest, Experience, ExperienceBatch, HyperMsg,
-                             LocState, RouteMsg, StoreStats, TrialEvent, TruthPose)
+                             LocState, RouteMsg, ScheduleUpdate, SpeedSchedule, StoreStats, TrialEvent, TruthPose)
 from common.path import Path
 from common.scenario import Scenario, load_scenario
 from deploy.configs import service_configs, write_service_configs
@@ -37,7 +38,12 @@ from services.controller.node import AVAILABLE_ALGORITHMS
 
 log = logging.getLogger(__name__)
 ROBOT_SERVICES = ("localizer", "controller", "bridge")
-SERVICES = ROBOT_SERVICES + ("gp_store",)   # the store is shared by the fleet, not one robot's
+FLEET_SERVICES = ("gp_store", "scheduler")   # shared by every robot: liveliness under lbc/alive/fleet/
+
+
+def services_of(sc: Scenario) -> tuple[str, ...]:
+    """The processes a scenario needs, in start order."""
+    return ROBOT_SERVICES + ("gp_store",) + (("scheduler",) if sc.scheduler.enabled else ())
 
 
 class ExperimentError(RuntimeError):
@@ -51,9 +57,8 @@ def check_supported(sc: Scenario) -> None:
                           f"(available: {', '.join(AVAILABLE_ALGORITHMS)})")
     if sc.localization.source != "pose":
         raise ConfigError("localization.source = 'vision' is not available in this version; use 'pose'")
-    if sc.scheduler.enabled:
-        raise ConfigError("scheduler.enabled = true: the speed scheduler service is not available in this "
-                          "version; set enabled = false and give trials.speed or trials.speeds")
+    if sc.scheduler.enabled and sc.trials.speeds:
+        raise ConfigError("trials.speeds and scheduler.enabled both set the speed: choose one")
 
 
 class Progress:
@@ -119,7 +124,9 @@ class Experiment:
             ("loc", LocState, keys.loc_state(r)), ("event", TrialEvent, keys.trial_event(r)))]
         self.experiences: dict[int, dict[tuple[str, int], Experience]] = {}
         self._decls.append(session.declare_subscriber(keys.experience(r), self._on_experiences))
-        for pattern in (keys.alive_all(r), keys.alive(keys.STORE_ROBOT, "gp_store")):
+        self.services = services_of(sc)
+        self.schedules: dict[int, SpeedSchedule] = {}
+        for pattern in (keys.alive_all(r), *(keys.alive(keys.STORE_ROBOT, f) for f in FLEET_SERVICES)):
             self._decls.append(session.liveliness().declare_subscriber(pattern, self._on_alive, history=True))
 
     def _on_experiences(self, sample) -> None:
@@ -180,19 +187,19 @@ class Experiment:
 
     def wait_ready(self) -> None:
         deadline = time.monotonic() + self.ready_timeout_s
-        self.progress.update("waiting for services: " + ", ".join(SERVICES))
-        while not all(s in self.alive for s in SERVICES):
+        self.progress.update("waiting for services: " + ", ".join(self.services))
+        while not all(s in self.alive for s in self.services):
             if time.monotonic() > deadline:
-                missing = [s for s in SERVICES if s not in self.alive]
+                missing = [s for s in self.services if s not in self.alive]
                 raise ExperimentError(f"services not up within {self.ready_timeout_s:.0f} s: {missing}")
             self._next_event(0.2)
-        self.progress.line(f"services up: {', '.join(SERVICES)} (robot {self.robot})")
+        self.progress.line(f"services up: {', '.join(self.services)} (robot {self.robot})")
 
     def control(self, service: str, action: str, mode: str, trial: int, speed: float = 0.0,
                 max_duration_s: float = 0.0) -> ControlReply:
         req = ControlRequest(stamp_s=time.time(), action=action, mode=mode, trial=trial, path_id=self.path_id,
                              speed_mps=speed, max_duration_s=max_duration_s, learning=self.sc.trials.learning,
-                             loop=self.sc.path.loop)
+                             loop=self.sc.path.loop, schedule=self.sc.scheduler.enabled and mode == "repeat")
         key = keys.control(self.robot, service)
         payload = encode(req)
         if self.recorder:
@@ -248,9 +255,39 @@ class Experiment:
         self.progress.line(f"teach   done in {self.teach_wall_s:.1f} s wall: {rep.detail}")
         return self.path
 
+    def schedule(self, trial: int) -> SpeedSchedule:
+        """The schedule the scheduler has for the route now (trial 1: v_init, made on demand)."""
+        try:
+            sched = query_one(self.session, keys.sched_schedule(self.path_id), SpeedSchedule, timeout_s=30.0)
+        except LookupError as exc:
+            self._check_children()
+            raise ExperimentError(f"no speed schedule for trial {trial}: {exc}") from None
+        self.schedules[trial] = sched
+        return sched
+
+    def reschedule(self, trial: int) -> SpeedSchedule:
+        """After a trial: the next schedule, from what this robot experienced (thesis 4.2.3-4.2.4)."""
+        req = ScheduleUpdate(stamp_s=time.time(), path_id=self.path_id, robot=self.robot, trial=trial)
+        try:
+            sched = query_one(self.session, keys.sched_update(self.path_id), SpeedSchedule, payload=encode(req),
+                              timeout_s=30.0)
+        except LookupError as exc:
+            self._check_children()
+            raise ExperimentError(f"no schedule after trial {trial}: {exc}") from None
+        v = np.asarray(sched.v_mps)
+        self.progress.line(f"sched   v{sched.version} for trial {trial + 1}: {v.min():.2f}-{v.max():.2f} m/s, "
+                           f"{int(np.sum(np.asarray(sched.decisions) > 0))} vertices faster, "
+                           f"{int(np.sum(np.asarray(sched.decisions) < 0))} slower" +
+                           (f" ({'; '.join(sched.notes)})" if sched.notes else ""))
+        return sched
+
     def repeat(self, trial: int, speed: float) -> TrialRecord:
         path = self.path
         nominal_s = path.length_m / max(speed, 1e-3)
+        if self.sc.scheduler.enabled:
+            v = np.asarray(self.schedule(trial).v_mps)
+            speed = float(v.mean())
+            nominal_s = float(np.sum(path.segment_lengths / np.maximum(v[:-1], 1e-3)))
         limit_s = self.sc.trials.time_limit_factor * nominal_s + 10.0
         rec = TrialRecord(trial=trial, speed_mps=speed)
         for s in ROBOT_SERVICES:
@@ -268,7 +305,7 @@ class Experiment:
                 continue
             if kind == "alive":
                 name, up = msg
-                if not up and name in SERVICES:
+                if not up and name in self.services:
                     rec.end_reason = f"{name} disappeared"
                     if name != "bridge":
                         try:
@@ -366,9 +403,9 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
         paths = write_service_configs(configs, out / "config")
         launcher = Launcher(endpoint, out / "logs")
         launcher.start_router(port)
-        for s in SERVICES:
+        for s in services_of(sc):
             launcher.start_service(s, paths[s], log_level)
-        progress.line(f"started router on {endpoint} and {', '.join(SERVICES)} (logs in {out / 'logs'})")
+        progress.line(f"started router on {endpoint} and {', '.join(services_of(sc))} (logs in {out / 'logs'})")
     else:
         endpoint = connect
     summary: dict[str, Any] = {"scenario": sc.name, "algorithm": sc.controller.algorithm, "trials": []}
@@ -390,6 +427,8 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
             rec = exp.repeat(trial, sc.trials.speed_of(trial))
             records.append(rec)
             hyper, ingested = exp.learn(trial)
+            if sc.scheduler.enabled and trial < sc.trials.count:
+                exp.reschedule(trial)
             d = predict_trial(trial, exp.trial_experiences(trial), model_train, model_hyper, sc.store.v_bin_mps,
                               sc.store.c_vertex, sc.store.c_velocity)
             disturbance.append(d)
@@ -398,6 +437,10 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
             series.append(s)
             m = trial_metrics(path, rec, s, *limits, experiences_total=ingested)
             nominal, learned = d.rmse()
+            if trial in exp.schedules:
+                v = np.asarray(exp.schedules[trial].v_mps)
+                m.update({"schedule_version": exp.schedules[trial].version, "scheduled_speed_mean_mps": float(v.mean()),
+                          "scheduled_speed_max_mps": float(v.max())})
             m.update({"experiences_trial": len(d.observed),
                       "heading_rate_residual_rmse_nominal_radps": float(nominal[2] / sc.sim.period_s),
                       "heading_rate_residual_rmse_learned_radps": float(learned[2] / sc.sim.period_s),
@@ -430,6 +473,7 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
                 "wall s per simulated minute (whole run)": round(wall / (sim_s / 60.0), 2) if sim_s else None,
                 "messages recorded": recorder.count if recorder else 0}
     from deploy.report import write_report  # matplotlib only when a report is written
-    write_report(out / "report.html", sc, exp.path, series, summary, run_info, disturbance)
+    write_report(out / "report.html", sc, exp.path, series, summary, run_info, disturbance,
+                 {t: np.asarray(v.v_mps) for t, v in exp.schedules.items()})
     progress.line(f"wrote {out / 'summary.json'}, {out / 'report.html'}, {out / 'run.mcap'} in {wall:.1f} s")
     return summary

@@ -148,8 +148,11 @@ def _plot_learning(trials: list[dict], lat_lim: float, head_lim_deg: float) -> s
         return _png(fig)
 
 
-def _plot_speed(series: list[TrialSeries], norm: Normalize) -> str:
+def _plot_speed(series: list[TrialSeries], norm: Normalize, path: Path, schedules: dict) -> str:
     with _figure(size=(10, 4)) as (fig, (ax,)):
+        for trial, v in sorted(schedules.items()):   # the speed scheduler's plan (thin steps)
+            if len(v) == len(path):
+                ax.step(path.s, v, where="mid", color=_CMAP(norm(trial)), lw=0.8, ls=":", zorder=4)
         for s in series:
             c = _CMAP(norm(s.trial))
             if s.distance_m.size:
@@ -158,8 +161,11 @@ def _plot_speed(series: list[TrialSeries], norm: Normalize) -> str:
                 ax.plot(s.cmd_distance_m, s.v_cmd_mps, color=c, lw=1.5, ls="--", zorder=3)
         if not any(s.distance_m.size or s.cmd_distance_m.size for s in series):
             _no_data(ax, "samples")
-        ax.legend(handles=[Line2D([], [], color="k", label="truth speed"),
-                           Line2D([], [], color="k", lw=1.5, ls="--", label="commanded speed")], fontsize=8)
+        handles = [Line2D([], [], color="k", label="truth speed"),
+                   Line2D([], [], color="k", lw=1.5, ls="--", label="commanded speed")]
+        if schedules:
+            handles.append(Line2D([], [], color="k", lw=0.8, ls=":", label="scheduled speed"))
+        ax.legend(handles=handles, fontsize=8)
         ax.set(xlabel="distance along route (m)", ylabel="speed (m/s)")
         ax.grid(alpha=0.3)
         _trial_colorbar(fig, [ax], norm)
@@ -249,7 +255,8 @@ def _section(title: str, caption: str, png: str) -> str:
 
 
 def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, series: list[TrialSeries],
-                 summary: dict, run_info: dict, disturbance: list[DisturbanceSeries] | None = None) -> None:
+                 summary: dict, run_info: dict, disturbance: list[DisturbanceSeries] | None = None,
+                 schedules: dict | None = None) -> None:
     """Write the experiment report as one self-contained HTML file at `out_path`."""
     series = sorted(series, key=lambda s: s.trial)
     trials = sorted(summary.get("trials") or [], key=lambda t: t.get("trial", 0))
@@ -275,8 +282,9 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
         _section("Learning over trials", "Max and RMS lateral error (m) and heading error (deg) per trial; red "
                  "rings mark trials with constraint violations, grey bands trials that did not complete.",
                  _plot_learning(trials, lat_lim, head_lim)),
-        _section("Speed", "Truth speed (solid) and commanded speed (dashed), m/s, against distance along the "
-                 "route (m), coloured by trial.", _plot_speed(series, norm)),
+        _section("Speed", "Truth speed (solid), commanded speed (dashed) and, with the speed scheduler, its "
+                 "schedule (dotted), m/s, against distance along the route (m), coloured by trial.",
+                 _plot_speed(series, norm, path, schedules or {})),
         _section("Solve time", "Controller solve time per control step (ms): per-trial median and 99th "
                  "percentile, and the histogram over all trials.", _plot_solve(series, trials)),
         _section("Learned disturbance", "What the nominal unicycle model misses, per control period, against "

@@ -11,7 +11,7 @@ from common.bus import open_session
 from common.config import dump_toml
 from common.scenario import parse_scenario
 from deploy.configs import service_configs, write_service_configs
-from deploy.experiment import SERVICES, Experiment, Progress
+from deploy.experiment import Experiment, Progress, services_of
 from deploy.launcher import Launcher
 from deploy.router import free_port
 
@@ -43,7 +43,7 @@ class Deployment:
         self.paths = write_service_configs(service_configs(self.sc, base / "data"), base / "config")
         self.launcher = Launcher(self.endpoint, base / "logs")
         self.launcher.start_router(self.port)
-        for s in SERVICES:
+        for s in services_of(self.sc):
             self.launcher.start_service(s, self.paths[s], "INFO")
         self.session = open_session(self.endpoint)
         self.exp = Experiment(self.sc, self.session, None, Progress(io.StringIO()), self.launcher)

@@ -30,7 +30,7 @@ EXAMPLES = [
                    cmd_age_s=0.1, v_cmd_applied_mps=0.5, w_cmd_applied_radps=0.0, rejected_msgs=3),
     m.TrialEvent(stamp_s=1.0, trial=1, mode="repeat", event="ended", reason="time limit", path_id="p1"),
     m.ControlRequest(stamp_s=1.0, action="prepare", mode="repeat", trial=1, path_id="p1", speed_mps=0.5,
-                     max_duration_s=100.0, learning=True, loop=False),
+                     max_duration_s=100.0, learning=True, loop=False, schedule=True),
     m.ControlReply(stamp_s=1.0, service="bridge", ok=True, detail="ready"),
     m.RouteMsg(path_id="p1", loop=False, vertex_spacing_m=0.25, x_m=[0.0, 0.25], y_m=[0.0, 0.0],
                theta_rad=[0.0, 0.0], taught_by="husky", stamp_s=0.0),
@@ -49,6 +49,9 @@ EXAMPLES += [
                dims=[HYPER_DIM] * 3),
     m.PathStats(path_id="p1", retained=10, ingested=20, bins=5, hyper_version=1),
     m.AliveEvent(stamp_s=2.0, alive=False),
+    m.SpeedSchedule(stamp_s=2.0, path_id="p1", version=2, based_on_robot="r1", based_on_trial=1,
+                    v_mps=[0.4, 0.7, 0.4], decisions=[0, 1, 0], notes=["trial 1"]),
+    m.ScheduleUpdate(stamp_s=2.0, path_id="p1", robot="r1", trial=1),
     m.StoreStats(stamp_s=2.0, store="store1", db_path="/tmp/x.db",
                  paths=[m.PathStats(path_id="p1", retained=10, ingested=20, bins=5, hyper_version=1)]),
 ]

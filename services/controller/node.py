@@ -18,7 +18,7 @@ import numpy as np
 from common import keys
 from common.bus import Node, query_one
 from common.config import ConfigError
-from common.messages import Clock, ControllerStatus, LocState, RouteMsg, VelocityCommand
+from common.messages import Clock, ControllerStatus, LocState, RouteMsg, SpeedSchedule, VelocityCommand
 from common.path import Path
 from common.service import Control, Service, service_main
 from common.store_client import ExperienceOutbox, WindowCache
@@ -81,18 +81,28 @@ class ControllerService(Service):
             except (LookupError, ValueError) as exc:
                 return self.reply(ctl, False, f"cannot load route {req.path_id}: {exc}")
             self.learning = req.learning
+            schedule, note = None, f"at {req.speed_mps:.2f} m/s"
+            if req.schedule:
+                try:
+                    sched = query_one(self.node.session, keys.sched_schedule(req.path_id), SpeedSchedule,
+                                      timeout_s=self.cfg.route_timeout_s)
+                except (LookupError, ValueError) as exc:
+                    return self.reply(ctl, False, f"no speed schedule for {req.path_id}: {exc}")
+                schedule = np.asarray(sched.v_mps)
+                note = f"on schedule v{sched.version} ({schedule.min():.2f}-{schedule.max():.2f} m/s)"
             try:
                 law, ic_vertices = self._make_law(req.path_id, path)
+                tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps,
+                                      loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2,
+                                      ic_vertices=ic_vertices, schedule=schedule)
             except (OSError, ValueError) as exc:
                 return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
-            tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps, loc_timeout_s=self.cfg.loc_timeout_s,
-                                  stop_decel_mps2=self.cfg.stop_decel_mps2, ic_vertices=ic_vertices)
             self.core = ControllerCore(path, tracker, self.cfg.period_s)
             self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
             if self.cache is not None:
                 self.cache.set_route(req.path_id, len(path))
                 self.cache.set_position(0, req.speed_mps)
-            return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) at {req.speed_mps:.2f} m/s "
+            return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
                               f"with {self.cfg.algorithm}")
         if req.action == "stop":
             self.core = None
@@ -187,11 +197,12 @@ class ControllerService(Service):
                                 v_cmd_mps=obs.v_cmd_mps, a=obs.a, g=obs.g)
             self.outbox.flush()
         if self.cache is not None:
-            self.cache.set_position(d.vertex, self.speed_mps)
+            speed = d.v_mps if d.v_mps > 0 else self.speed_mps   # the scheduled speed here, when moving
+            self.cache.set_position(d.vertex, speed)
             if self.models is not None:   # the window the NMPC actually predicted with
                 window_n, hyper_version = self.models.last_n, self.models.last_version
             else:
-                window_n = len(self.cache.local(d.vertex, self.speed_mps).A)
+                window_n = len(self.cache.local(d.vertex, speed).A)
                 hyper_version = self.cache.hyper.version if self.cache.hyper is not None else 0
         pred = d.predicted if d.predicted is not None else np.zeros((0, 3))
         self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,

@@ -49,11 +49,15 @@ class Decision:
 
 class PathTracker:
     def __init__(self, path: Path, law: SteeringLaw, limits: TrackerLimits, *, speed_mps: float,
-                 loc_timeout_s: float = 0.5, stop_decel_mps2: float = 0.4, ic_vertices: int = 0):
+                 loc_timeout_s: float = 0.5, stop_decel_mps2: float = 0.4, ic_vertices: int = 0,
+                 schedule: np.ndarray | None = None):
         self.path = path
         self.law = law
         self.limits = limits
         self.speed_mps = min(speed_mps, limits.v_max_mps)
+        if schedule is not None and len(schedule) != len(path):
+            raise ValueError(f"a schedule of {len(schedule)} speeds for a route of {len(path)} vertices")
+        self.schedule = None if schedule is None else np.asarray(schedule, dtype=float)
         self.loc_timeout_s = loc_timeout_s
         self.stop_decel = stop_decel_mps2
         self.ic_vertices = ic_vertices
@@ -65,8 +69,14 @@ class PathTracker:
         self._fallback = FLLaw(FLGains())
 
     def scheduled_speed(self, distance_m: float) -> float:
-        """Speed at a place on the route: one fixed speed for now; per-vertex schedules plug in here."""
-        return self.speed_mps
+        """Speed at a place on the route: the schedule's speed at the nearest vertex (thesis 5.3.1:
+        v_cmd = v_sched,i), or the one fixed speed of the trial."""
+        if self.schedule is None:
+            return self.speed_mps
+        i = int(np.clip(np.searchsorted(self.path.s, distance_m), 0, len(self.path) - 1))
+        if i > 0 and distance_m - self.path.s[i - 1] < self.path.s[i] - distance_m:
+            i -= 1
+        return float(self.schedule[i])
 
     def speed_at(self, distance_m: float) -> float:
         """What the robot is commanded at a distance along the route: the schedule, the robot's limit,

@@ -1,0 +1,5 @@
+import sys
+
+from services.scheduler.node import main
+
+sys.exit(main())
