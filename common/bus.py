@@ -142,12 +142,26 @@ class Node:
         """Publish reliably: under congestion wait rather than drop (Zenoh's default is to drop),
         because commands, estimates, trial events and experiences must not silently vanish.
         Only streams where the newest sample supersedes the rest (camera frames) are droppable."""
+        self._publisher(key, droppable).put(encode(msg))
+
+    def _publisher(self, key: str, droppable: bool = False) -> zenoh.Publisher:
         pub = self._pubs.get(key)
         if pub is None:
             cc = zenoh.CongestionControl.DROP if droppable else zenoh.CongestionControl.BLOCK
             pub = self._pubs[key] = self.session.declare_publisher(key, congestion_control=cc)
             self._decls.append(pub)
-        pub.put(encode(msg))
+        return pub
+
+    def wait_matching(self, key: str, timeout_s: float, droppable: bool = False) -> bool:
+        """Declare the publisher of `key` and wait until Zenoh knows a subscriber for it: samples put
+        by a brand-new publisher before that may not reach anyone."""
+        pub = self._publisher(key, droppable)
+        deadline = time.monotonic() + timeout_s
+        while not pub.matching_status.matching:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        return True
 
     def subscribe(self, key: str, cls: type[M], handler: Callable[[M, str], None]) -> None:
         """Decode on the Zenoh thread and call `handler(msg, key)`; rejected payloads are logged and

@@ -88,8 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     launch.add_argument("--log-level", default="INFO")
     launch.set_defaults(func=_launch)
 
-    from deploy import store_cli
+    from deploy import sched_cli, store_cli
     store_cli.add_parser(sub)
+    sched_cli.add_parser(sub)
 
     router = sub.add_parser("router", help="run the local Zenoh router")
     router.add_argument("args", nargs=argparse.REMAINDER)

@@ -86,7 +86,8 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
     est = [s for s in rec.status if s.state in ("tracking", "holding")]
     est_lat = np.array([s.lateral_m for s in est])
     est_head = np.array([s.heading_rad for s in est])
-    solve = np.array([s.solve_ms for s in rec.status if s.state in ("tracking", "holding")])
+    solve = np.array([s.solve_ms for s in est])
+    w_cmd = np.array([s.w_cmd_radps for s in est])
     return {
         "trial": rec.trial,
         "completed": rec.completed,
@@ -109,6 +110,7 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
         "rms_lateral_m_est": _rms(est_lat),
         "max_heading_rad_est": _max_abs(est_head),
         "rms_heading_rad_est": _rms(est_head),
+        "max_w_cmd_radps": _max_abs(w_cmd),
         "control_steps": len(rec.status),
         "end_reason": rec.end_reason,
         "wall_time_s": rec.wall_s,

@@ -12,3 +12,5 @@ class SchedulerConfig:
     db_path: str                      # schedules and collected per-vertex experience (SQLite)
     params: SchedulerParams = field(default_factory=SchedulerParams)
     auto_after_trial: bool = True     # propose the next schedule when a robot ends a repeat
+    settle_s: float = 2.0             # without the controller's end-of-route status, wait this long
+                                      # after its last status before scheduling from a trial

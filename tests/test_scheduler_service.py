@@ -1,0 +1,193 @@
+"""The speed scheduler as a real process: it collects a robot's per-vertex passes from the bus, proposes
+the next schedule after the trial (eq. 4.2-4.5), keeps it across a SIGKILL, answers the same update
+again with the same schedule, and answers bad requests with a reason."""
+from __future__ import annotations
+
+import json
+import signal
+import threading
+
+import numpy as np
+import pytest
+
+from common import keys
+from common.bus import Node, query_one
+from common.codec import encode
+from common.config import dump_toml
+from common.messages import ControllerStatus, ScheduleUpdate, SpeedSchedule, TrialEvent
+from common.path import Path
+from deploy.launcher import Launcher
+from deploy.router import free_port
+from services.localizer.config import LocalizerConfig
+from services.localizer.routes import RouteStore
+from services.scheduler.config import SchedulerConfig
+from services.scheduler.core import DECREASE, INCREASE, SchedulerParams
+
+pytestmark = pytest.mark.integration
+N = 201                      # vertices 0.25 m apart: a 50 m straight route
+ROUTE = "straight"
+PARAMS = SchedulerParams(v_init=0.5, v_max=2.0, gamma1=0.2, gamma2=0.24, a_max=0.2, a_min=-0.05,
+                         v_start=0.4, start_m=5.0, v_end=0.4, end_m=5.0)
+
+
+def status(trial: int, i: int, state: str, lateral_m: float) -> ControllerStatus:
+    return ControllerStatus(
+        stamp_s=float(i), tick=i, trial=trial, algorithm="fl", state=state, reason="", path_id=ROUTE, vertex=i,
+        distance_m=0.25 * i, lateral_m=float(lateral_m), heading_rad=0.01, v_cmd_mps=0.5, w_cmd_radps=0.1,
+        solve_ms=0.1, iterations=0, loc_age_s=0.0, rejected_msgs=0, experiences_sent=0, experiences_pending=0,
+        window_experiences=0, hyper_version=0, w_ff_radps=0.0, pred_x_m=[], pred_y_m=[], pred_theta_rad=[])
+
+
+class Rig:
+    """Router + localizer (serves the route) + scheduler, and a client node playing robot r1."""
+
+    def __init__(self, base):
+        self.base = base
+        RouteStore(base / "data" / "routes").save(
+            Path(ROUTE, np.column_stack([np.arange(N) * 0.25, np.zeros(N), np.zeros(N)])), 0.0)
+        (base / "loc.toml").write_text(dump_toml(LocalizerConfig(robot_name="r1", data_dir=str(base / "data"))))
+        (base / "sched.toml").write_text(dump_toml(SchedulerConfig(db_path=str(base / "data" / "sched.db"),
+                                                                   params=PARAMS)))
+        self.port = free_port()
+        self.launcher = Launcher(f"tcp/127.0.0.1:{self.port}", base / "logs")
+        self.launcher.start_router(self.port)
+        self.launcher.start_service("localizer", base / "loc.toml")
+        self.node = Node("test", "r1", f"tcp/127.0.0.1:{self.port}")
+        self.published: list[SpeedSchedule] = []
+        self.new = threading.Condition()
+        self.node.subscribe(keys.sched_schedule(ROUTE), SpeedSchedule, self._on_schedule)
+        self.alive = False
+        self.node.liveliness_subscriber(keys.alive(keys.STORE_ROBOT, "scheduler"), self._on_alive)
+        self.start_scheduler()
+
+    def _on_alive(self, _key: str, alive: bool) -> None:
+        with self.new:
+            self.alive = alive
+            self.new.notify_all()
+
+    def wait_alive(self, alive: bool) -> None:
+        with self.new:
+            assert self.new.wait_for(lambda: self.alive == alive, 30), f"scheduler alive != {alive}"
+
+    def kill_scheduler(self) -> None:
+        self.launcher.kill("scheduler", signal.SIGKILL)
+        self.wait_alive(False)      # the router noticed; a restart's token is then really the new one
+
+    def _on_schedule(self, msg: SpeedSchedule, _key: str) -> None:
+        with self.new:
+            self.published.append(msg)
+            self.new.notify_all()
+
+    def start_scheduler(self) -> None:
+        self.launcher.start_service("scheduler", self.base / "sched.toml")
+        self.wait_alive(True)
+        for key in (keys.ctrl_status("r1"), keys.trial_event("r1")):
+            assert self.node.wait_matching(key, 30), f"the scheduler does not subscribe to {key}"
+
+    def schedule(self) -> SpeedSchedule:
+        return query_one(self.node.session, keys.sched_schedule(ROUTE), SpeedSchedule, timeout_s=10.0)
+
+    def drive_trial(self, trial: int, lateral_m, end_event_first: bool = False) -> None:
+        """One repeat as the scheduler sees it: a status per vertex and the controller's end of the route,
+        and the bridge's end-of-trial event (after them, or overtaking them as it may on a real bus)."""
+        def event():
+            self.node.publish(keys.trial_event("r1"), TrialEvent(stamp_s=float(N), trial=trial, mode="repeat",
+                                                                 event="ended", reason="finished", path_id=ROUTE))
+        if end_event_first:
+            self.node.publish(keys.ctrl_status("r1"), status(trial, 0, "tracking", lateral_m(0)))
+            event()
+        for i in range(N):
+            self.node.publish(keys.ctrl_status("r1"), status(trial, i, "tracking", lateral_m(i)))
+        self.node.publish(keys.ctrl_status("r1"), status(trial, N - 1, "finished", 0.0))
+        if not end_event_first:
+            event()
+
+    def wait_version(self, version: int) -> SpeedSchedule:
+        with self.new:
+            assert self.new.wait_for(lambda: any(s.version == version for s in self.published), 30), \
+                f"no schedule v{version} published; log:\n{self.log()}"
+            return next(s for s in self.published if s.version == version)
+
+    def log(self) -> str:
+        return (self.base / "logs" / "scheduler.log").read_text(errors="replace")
+
+    def close(self) -> None:
+        self.node.close()
+        self.launcher.stop()
+
+
+@pytest.fixture
+def rig(tmp_path):
+    r = Rig(tmp_path)
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def test_collects_passes_from_the_bus_and_schedules_the_next_trial(rig):
+    v1 = rig.schedule()
+    assert v1.version == 1 and len(v1.v_mps) == N
+    s = np.arange(N) * 0.25
+    assert np.allclose(np.asarray(v1.v_mps)[(s > 5) & (s < 44)], 0.5)   # v_init; 0.4 over the first and last 5 m
+    assert max(v1.v_mps[0], v1.v_mps[-1]) <= 0.4 + 1e-9
+
+    # 0.25 m off between 20 and 25 m (beyond 0.15 * 1.1), well inside elsewhere
+    rig.drive_trial(1, lambda i: 0.25 if 80 <= i <= 100 else 0.02)
+    v2 = rig.wait_version(2)
+    d, v = np.asarray(v2.decisions), np.asarray(v2.v_mps)
+    assert v2.based_on_robot == "r1" and v2.based_on_trial == 1
+    assert np.all(d[80:101] == DECREASE) and np.all(d[:80] == INCREASE) and np.all(d[101:] == INCREASE)
+    assert np.allclose(v[80:101], 0.5 - 0.24)                                # eq. 4.2, second case
+    # eq. 4.4's deceleration limit ramps the speed down before the slow section
+    ramp = np.sqrt(0.26 ** 2 + 2 * 0.05 * (20.0 - s[60:80]))
+    assert np.allclose(v[60:80], np.minimum(0.7, ramp))
+    assert any("feature criterion is skipped" in n for n in v2.notes)
+
+    # the runner asking for the same update gets the same schedule, not a second step
+    again = query_one(rig.node.session, keys.sched_update(ROUTE), SpeedSchedule,
+                      payload=encode(ScheduleUpdate(stamp_s=0.0, path_id=ROUTE, robot="r1", trial=1)), timeout_s=10)
+    assert again.version == 2 and again.v_mps == v2.v_mps
+    assert rig.schedule().version == 2
+
+
+def test_lbc_sched_show_prints_the_latest_schedule(rig, capsys):
+    from deploy.cli import main
+    rig.schedule()
+    assert main(["sched", "show", "--path", ROUTE, "--json", "--connect", f"tcp/127.0.0.1:{rig.port}"]) == 0
+    shown = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert shown["version"] == 1 and len(shown["v_mps"]) == N
+    assert main(["sched", "show", "--path", "nowhere", "--connect", f"tcp/127.0.0.1:{rig.port}"]) == 1
+    assert "no taught route" in capsys.readouterr().err
+
+
+def test_an_end_event_overtaking_the_passes_waits_for_them(rig):
+    rig.schedule()
+    rig.drive_trial(1, lambda i: 0.25 if i == N // 2 else 0.02, end_event_first=True)
+    v2 = rig.wait_version(2)
+    assert not any("not passed" in n for n in v2.notes), v2.notes
+    assert v2.decisions[N // 2] == DECREASE and v2.decisions[0] == INCREASE
+
+
+def test_schedules_and_passes_survive_a_sigkill(rig):
+    rig.schedule()
+    rig.drive_trial(1, lambda i: 0.02)
+    v2 = rig.wait_version(2)
+    rig.kill_scheduler()
+    rig.start_scheduler()
+    after = rig.schedule()
+    assert after.version == 2 and after.v_mps == v2.v_mps
+    rig.drive_trial(2, lambda i: 0.02)
+    v3 = rig.wait_version(3)
+    assert v3.based_on_trial == 2 and max(v3.v_mps) > max(v2.v_mps)
+
+
+def test_bad_requests_get_a_reason_and_the_service_keeps_running(rig):
+    with pytest.raises(LookupError, match="no taught route"):
+        query_one(rig.node.session, keys.sched_schedule("nowhere"), SpeedSchedule, timeout_s=10)
+    with pytest.raises(LookupError, match="no experience collected"):
+        query_one(rig.node.session, keys.sched_update(ROUTE), SpeedSchedule,
+                  payload=encode(ScheduleUpdate(stamp_s=0.0, path_id=ROUTE, robot="r1", trial=7)), timeout_s=10)
+    with pytest.raises(LookupError, match="ScheduleUpdate"):
+        query_one(rig.node.session, keys.sched_update(ROUTE), SpeedSchedule, payload=b"\x92\x01", timeout_s=10)
+    assert rig.schedule().version == 1
