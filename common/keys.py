@@ -41,6 +41,10 @@ def ctrl_status(robot: str) -> str:
     return f"{_robot(robot)}/ctrl/status"
 
 
+def ctrl_corridor(robot: str) -> str:
+    return f"{_robot(robot)}/ctrl/corridor"
+
+
 def bridge_status(robot: str) -> str:
     return f"{_robot(robot)}/bridge/status"
 
@@ -119,7 +123,8 @@ def everything() -> str:
 # message type carried by each per-robot topic (by key suffix), for recorders and tools
 TOPIC_TYPES: dict[str, type] = {
     "clock": m.Clock, "sensors/odom": m.Odometry, "truth/pose": m.TruthPose, "loc/state": m.LocState,
-    "cmd/vel": m.VelocityCommand, "ctrl/status": m.ControllerStatus, "bridge/status": m.BridgeStatus,
+    "cmd/vel": m.VelocityCommand, "ctrl/status": m.ControllerStatus,
+    "ctrl/corridor": m.CorridorUpdate, "bridge/status": m.BridgeStatus,
     "trial/event": m.TrialEvent, "experience": m.ExperienceBatch, "experience/ack": m.ExperienceAck,
 }
 

@@ -395,8 +395,27 @@ class ScheduleUpdate(Message):
         check_name("robot", self.robot)
 
 
+@dataclass(frozen=True, kw_only=True)
+class CorridorUpdate(Message):
+    """Narrow or widen the safety corridor of a route over [from_m, to_m] (a guidance module or an
+    operator); the constrained laws (C-/RC-LB-NMPC) respect it from their next step on."""
+    stamp_s: float
+    path_id: str
+    from_m: float
+    to_m: float
+    left_m: float                   # largest lateral error allowed to the left of the route (+)
+    right_m: float                  # ... and to the right (negative, or positive if the corridor is offset)
+    heading_rad: float
+
+    def __post_init__(self):
+        check_name("path_id", self.path_id)
+        if not (self.left_m > self.right_m and self.heading_rad > 0 and self.to_m >= self.from_m):
+            raise ValueError("a corridor needs left_m > right_m, heading_rad > 0 and to_m >= from_m")
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     Clock, Odometry, TruthPose, LocState, VelocityCommand, ControllerStatus, BridgeStatus,
     TrialEvent, ControlRequest, ControlReply, RouteMsg, AliveEvent, Experience, ExperienceBatch, ExperienceAck,
     ExperienceWindow, HyperDim, HyperMsg, PathStats, StoreStats, SpeedSchedule, ScheduleUpdate,
+    CorridorUpdate,
 )

@@ -128,6 +128,19 @@ class NMPCSection:
     lookahead_m: float = 1.5
     max_iter: int = 10
     max_evals: int = 6
+    delay_compensation: bool = True
+    # MM-, C- and RC-LB-NMPC (chapters 6 and 7); see services/controller/nmpc.py NMPCSettings
+    sp_gamma: float = 2.0
+    mm_sigmas: float = 3.0
+    alpha: float = 3.0
+    r_v: float = 4.0
+    r_dv: float = 2.0
+    v_min_mps: float = 0.05
+    slack_weight: float = 2000.0
+    sqp_iter: int = 4
+    prior_std_base: tuple[float, float, float] = (0.002, 0.004, 0.012)
+    prior_std_per_mps: tuple[float, float, float] = (0.004, 0.008, 0.025)
+    process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -151,8 +164,20 @@ class ControllerSection:
 
 @dataclass(frozen=True, kw_only=True)
 class ConstraintsSection:
+    """The safety corridor (thesis 7.2): half-width and heading limit along the whole route, and
+    optionally other limits over stretches: segments = [[from_m, to_m, left_m, right_m, heading_deg]]
+    (right_m is the signed limit to the right, e.g. -0.2)."""
     lateral_m: float = 0.3
     heading_deg: float = 15.0
+    segments: list[list[float]] = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.lateral_m <= 0 or self.heading_deg <= 0:
+            raise ValueError("lateral_m and heading_deg must be > 0")
+        for seg in self.segments:
+            if len(seg) != 5 or not (seg[2] > seg[3] and seg[4] > 0 and seg[1] >= seg[0]):
+                raise ValueError("each segment is [from_m, to_m, left_m, right_m, heading_deg] with "
+                                 "left_m > right_m, heading_deg > 0 and to_m >= from_m")
 
 
 @dataclass(frozen=True, kw_only=True)

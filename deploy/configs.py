@@ -7,7 +7,7 @@ from common.config import dump_toml
 from common.typecheck import to_dict
 from common.scenario import Scenario
 from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
-from services.controller.config import ControllerConfig, FLConfig, LimitsConfig, StoreClientConfig
+from services.controller.config import ControllerConfig, CorridorConfig, FLConfig, LimitsConfig, StoreClientConfig
 from services.controller.ilc import ILCGains
 from services.controller.nmpc import NMPCSettings
 from services.gp_store.config import BinConfig, FitConfig, StoreConfig
@@ -44,6 +44,8 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         nmpc=NMPCSettings(horizon=ctl.horizon, **to_dict(ctl.nmpc)),
         store=StoreClientConfig(v_bin_mps=sc.store.v_bin_mps, c_vertex=sc.store.c_vertex,
                                 c_velocity=sc.store.c_velocity),
+        corridor=CorridorConfig(lateral_m=sc.constraints.lateral_m, heading_deg=sc.constraints.heading_deg,
+                                segments=[list(map(float, seg)) for seg in sc.constraints.segments]),
         data_dir=str(Path(data_dir) / "controller"))
     st = sc.store
     gp_store = StoreConfig(

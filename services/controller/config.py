@@ -35,6 +35,14 @@ class StoreClientConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class CorridorConfig:
+    """Thesis 7.2's tracking limits: the scenario's [constraints]."""
+    lateral_m: float = 0.3
+    heading_deg: float = 15.0
+    segments: list[list[float]] = field(default_factory=list)   # [from_m, to_m, left_m, right_m, heading_deg]
+
+
+@dataclass(frozen=True, kw_only=True)
 class ControllerConfig:
     robot_name: str
     algorithm: str = "fl"
@@ -48,4 +56,5 @@ class ControllerConfig:
     ilc: ILCGains = field(default_factory=ILCGains)
     nmpc: NMPCSettings = field(default_factory=NMPCSettings)
     store: StoreClientConfig = field(default_factory=StoreClientConfig)
+    corridor: CorridorConfig = field(default_factory=CorridorConfig)
     data_dir: str = ""   # where learned feedforwards (ILC) are kept, one file per route

@@ -11,6 +11,7 @@ from typing import Callable, Protocol
 import numpy as np
 
 from common.path import Path
+from services.controller.corridor import Corridor
 from services.controller.fl import FLGains, fl_angular_rate
 
 
@@ -33,6 +34,9 @@ class StepContext:
     # since (oldest first) and the one applied just before the capture, when known
     delayed_cmds: tuple[tuple[float, float], ...] = ()
     cmd_before_capture: tuple[float, float] | None = None
+    pose_cov: np.ndarray | None = None   # 3x3 covariance of `pose` (route frame), from the localizer
+    corridor: Corridor | None = None   # per-vertex limits (thesis 7.3), for the constrained laws
+    v_max_mps: float = float("inf")      # the robot's speed limit (the constrained laws choose v)
 
 
 @dataclass
@@ -41,6 +45,8 @@ class LawResult:
     iterations: int = 0
     predicted: np.ndarray | None = None   # (K, 3) predicted poses in the route frame, if the law predicts
     info: dict = field(default_factory=dict)
+    v_mps: float | None = None            # a law that optimizes the speed too (C-/RC-LB-NMPC) sets it
+    stop_reason: str = ""                 # the law cannot go on safely: stop the robot and say why
 
 
 class SteeringLaw(Protocol):

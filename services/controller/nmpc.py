@@ -53,6 +53,19 @@ class NMPCSettings:
     max_iter: int = 10
     max_evals: int = 6        # residual evaluations per step at most: bounds the solve time
     tol: float = 1e-3         # rad/s: stop when no angular rate moves more than this
+    delay_compensation: bool = True   # eq. 7.12: start from the estimate carried forward to now
+    # --- MM-, C- and RC-LB-NMPC (chapters 6, 7) ---
+    sp_gamma: float = 2.0     # sigma-point scaling (eq. 6.10-6.14; thesis 6.4.2)
+    mm_sigmas: float = 3.0    # MM: boundary sequences at +-3 sigma (eq. 6.5)
+    alpha: float = 3.0        # RC: corridor tightened by alpha * sigma (eq. 7.4); C-LB-NMPC uses 0
+    r_v: float = 4.0          # s^2/m^2, on v - v_desired (eq. 7.2's u_d: the scheduled speed)
+    r_dv: float = 2.0         # s^2/m^2, on v_j - v_{j-1}
+    v_min_mps: float = 0.05   # RC/C: the slowest the law may choose while moving
+    slack_weight: float = 2000.0    # C/RC: L1 price of violating a (tightened) corridor limit
+    sqp_iter: int = 4         # C/RC: SQP iterations per step at most
+    prior_std_base: tuple[float, float, float] = (0.002, 0.004, 0.012)      # per period, body frame
+    prior_std_per_mps: tuple[float, float, float] = (0.004, 0.008, 0.025)
+    process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
 
     def __post_init__(self):
         if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
@@ -100,21 +113,26 @@ class HorizonProblem:
         self.cD = np.cos(direction)
         self.sinD = np.sin(direction)
 
-    def rollout(self, w: np.ndarray, with_jac: bool):
-        """Predicted poses (K+1, 3) and, with_jac, their sensitivities dX/dw (K+1, 3, K).
+    def rollout(self, w: np.ndarray, with_jac: bool, v: np.ndarray | None = None, with_v_jac: bool = False,
+                a_out: np.ndarray | None = None):
+        """Predicted poses (K+1, 3) and, with_jac, their sensitivities dX/dw (K+1, 3, K); with_v_jac also
+        dX/dv (the constrained laws optimize the speeds too; `v` overrides the profile's). `a_out`
+        (K, 9) receives the disturbance inputs a_j (for the GP variance along the horizon).
 
-        Per step, x_{j+1} = F(x_j, x_{j-1}, w_j, w_{j-1}) (x_{j-1} and w_{j-1} enter through v_{j-1} and
+        Per step, x_{j+1} = F(x_j, x_{j-1}, u_j, u_{j-1}) (x_{j-1} and u_{j-1} enter through v_{j-1} and
         u_{j-1} in a_j), so S_{j+1} = A_j S_j + C_j S_{j-1} + b_j e_j' + d_j e_{j-1}' with the 3x3 A_j, C_j
         and the 3-vectors b_j, d_j below: a handful of small matrix products per step."""
         K, dt = self.K, self.dt
         X = np.empty((K + 1, 3))
         X[0] = self.x0
         S = np.zeros((K + 1, 3, K)) if with_jac else None
+        Sv = np.zeros((K + 1, 3, K)) if with_v_jac else None
         model = self.model
         a = np.empty(9)
         xj, yj, thj = (float(v) for v in self.x0)
         xp = yp = thp = cp = sp = 0.0
-        D, sD, cD, sinD, v_all = self.D, self.sD, self.cD, self.sinD, self.v
+        D, sD, cD, sinD = self.D, self.sD, self.cD, self.sinD
+        v_all = self.v if v is None else v
         for j in range(K):
             cd, sd = cD[j], sinD[j]
             dx, dy = xj - D[j, 0], yj - D[j, 1]
@@ -138,16 +156,22 @@ class HorizonProblem:
                 gx, gy, gth = float(g[0]), float(g[1]), float(g[2])
             else:
                 gx = gy = gth = 0.0
+            if a_out is not None:
+                if model is None:   # the inputs still matter to a prior that depends on the commands
+                    a[5], a[6] = v, wj
+                a_out[j] = a
             xn = xj + v * dt * c + c * gx - s * gy
             yn = yj + v * dt * s + s * gx + c * gy
             thn = thj + wj * dt + gth
             X[j + 1] = (xn, yn, thn)
-            if with_jac:
+            if with_jac or with_v_jac:
                 # the nominal step and the rotation of g by theta_j
                 Aj = np.array([[1.0, 0.0, -v * dt * s - s * gx - c * gy],
                                [0.0, 1.0, v * dt * c + c * gx - s * gy],
                                [0.0, 0.0, 1.0]])
                 b = np.array([0.0, 0.0, dt])
+                bv = np.array([dt * c, dt * s, 0.0])
+                Cp = None
                 if model is not None:
                     Rf = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
                     Ax = np.array([[cd, sd, 0.0], [-sd, cd, 0.0], [0.0, 0.0, 1.0],
@@ -156,17 +180,23 @@ class HorizonProblem:
                     RDg = Rf @ Dg                                                   # (3, 9)
                     Aj += RDg[:, :Ax.shape[0]] @ Ax
                     b += RDg[:, 6]
-                Sn = Aj @ S[j]
-                Sn[:, j] += b
-                if model is not None and j > 0:
-                    Ap = np.array([[-cp / dt, -sp / dt, (-sp * (xj - xp) + cp * (yj - yp)) / dt],
-                                   [0.0, 0.0, -1.0 / dt]])
-                    Sn += (RDg[:, 3:5] @ Ap) @ S[j - 1]
-                    Sn[:, j - 1] += RDg[:, 8]
-                S[j + 1] = Sn
+                    bv += RDg[:, 5]
+                    if j > 0:
+                        Ap = np.array([[-cp / dt, -sp / dt, (-sp * (xj - xp) + cp * (yj - yp)) / dt],
+                                       [0.0, 0.0, -1.0 / dt]])
+                        Cp = RDg[:, 3:5] @ Ap
+                for Sx, bj, col_prev in ((S, b, 8), (Sv, bv, 7)):
+                    if Sx is None:
+                        continue
+                    Sn = Aj @ Sx[j]
+                    Sn[:, j] += bj
+                    if Cp is not None:
+                        Sn += Cp @ Sx[j - 1]
+                        Sn[:, j - 1] += RDg[:, col_prev]
+                    Sx[j + 1] = Sn
             xp, yp, thp, cp, sp = xj, yj, thj, c, s
             xj, yj, thj = xn, yn, thn
-        return X, S
+        return (X, S, Sv) if with_v_jac else (X, S)
 
     def errors(self, X: np.ndarray) -> np.ndarray:
         """(K, 3) errors of x_1..x_K in the frames of their desired poses (along, lateral, heading)."""
@@ -181,9 +211,14 @@ class HorizonProblem:
         term = E[-1, 1] + self.s.lookahead_m * math.sin(E[-1, 2])
         return np.concatenate([self.sqrt_dr * dw, [self.sqrt_qt * term]])
 
+    # the errors the cost weighs; MM-LB-NMPC replaces it with its worst-case boundary sequence
+    cost_errors: Callable[[np.ndarray], np.ndarray] | None = None
+
     def residual(self, w: np.ndarray):
         X, S = self.rollout(w, with_jac=True)
         E = self.errors(X)
+        if self.cost_errors is not None:
+            E = self.cost_errors(E)
         r = np.concatenate([(E * self.sqrt_q).ravel(), self.sqrt_r * (w - self.w_ref), self._extra(w, E)])
         K = self.K
         J = np.zeros((3 * K + 2 * K + 1, K))
@@ -200,6 +235,8 @@ class HorizonProblem:
 
     def cost(self, w: np.ndarray) -> float:
         E = self.errors(self.rollout(w, with_jac=False)[0])
+        if self.cost_errors is not None:
+            E = self.cost_errors(E)
         extra = self._extra(w, E)
         return 0.5 * float(np.sum((E * self.sqrt_q) ** 2) + self.s.r_w * np.sum((w - self.w_ref) ** 2)
                            + extra @ extra)
@@ -213,12 +250,14 @@ def _propagate_delay(ctx: StepContext, dt: float, model: DisturbanceModel | None
     x = np.array(ctx.pose, dtype=float)
     u_before = ctx.cmd_before_capture if ctx.cmd_before_capture is not None else ctx.delayed_cmds[0]
     hint = ctx.vertex
+    trace = []      # (x, a, v, w) per delayed period: the robust laws carry the covariance along too
     for v_i, w_i in ctx.delayed_cmds:
         g = np.zeros(3)
+        pr = ctx.path.project(x, hint)
+        hint = pr.vertex
+        a = np.array([pr.distance_m, pr.lateral_m, pr.heading_rad, *v_prev, v_i, w_i, *u_before])
+        trace.append((x.copy(), a, v_i, w_i))
         if model is not None:
-            pr = ctx.path.project(x, hint)
-            hint = pr.vertex
-            a = np.array([pr.distance_m, pr.lateral_m, pr.heading_rad, *v_prev, v_i, w_i, *u_before])
             g = model.mean_and_grad(a)[0]
         c, s = math.cos(x[2]), math.sin(x[2])
         x_next = np.array([x[0] + v_i * dt * c + c * g[0] - s * g[1], x[1] + v_i * dt * s + s * g[0] + c * g[1],
@@ -226,7 +265,7 @@ def _propagate_delay(ctx: StepContext, dt: float, model: DisturbanceModel | None
         v_prev = ((c * (x_next[0] - x[0]) + s * (x_next[1] - x[1])) / dt, (x_next[2] - x[2]) / dt)
         u_before = (v_i, w_i)
         x = x_next
-    return x, ctx.path.project(x, hint).distance_m, v_prev, u_before
+    return x, ctx.path.project(x, hint).distance_m, v_prev, u_before, trace
 
 
 def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
@@ -242,8 +281,9 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
     else:
         v_prev = ctx.cmd_before_capture or ctx.prev_cmd   # no earlier estimate: as commanded
     x0, s0, u_prev = np.array(ctx.pose, dtype=float), ctx.s_m, ctx.prev_cmd
-    if ctx.delayed_cmds:
-        x0, s0, v_prev, u_prev = _propagate_delay(ctx, dt, model, v_prev)
+    trace = []
+    if ctx.delayed_cmds and settings.delay_compensation:
+        x0, s0, v_prev, u_prev, trace = _propagate_delay(ctx, dt, model, v_prev)
     s_d = np.empty(K + 1)
     v = np.empty(K)
     s_d[0] = s0
@@ -259,6 +299,8 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
     x0[2] = desired[0, 2] + math.remainder(x0[2] - desired[0, 2], 2 * math.pi)
     desired[:, 2] = desired[0, 2] + np.unwrap(desired[:, 2] - desired[0, 2])
     problem = HorizonProblem(x0, desired, s_d, v, w_ref, dt, settings, model, v_prev, u_prev, tangent)
+    problem.delay_trace = trace
+    problem.kappa = kappa
     return problem, w_limit
 
 

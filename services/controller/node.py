@@ -18,20 +18,23 @@ import numpy as np
 from common import keys
 from common.bus import Node, query_one
 from common.config import ConfigError
-from common.messages import Clock, ControllerStatus, LocState, RouteMsg, SpeedSchedule, VelocityCommand
+from common.messages import (Clock, ControllerStatus, CorridorUpdate, LocState, RouteMsg, SpeedSchedule,
+                             VelocityCommand)
 from common.path import Path
 from common.service import Control, Service, service_main
 from common.store_client import ExperienceOutbox, WindowCache
 from services.controller.config import ControllerConfig
 from services.controller.core import ControllerCore
+from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
 from services.controller.ilc import ILCLaw, ILCMemory
 from services.controller.laws import FLLaw, SteeringLaw
 from services.controller.local_model import LocalModels
 from services.controller.nmpc import LBNMPCLaw
+from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.controller.tracker import PathTracker, TrackerLimits
 
-AVAILABLE_ALGORITHMS = ("fl", "ilc", "lb-nmpc")
+AVAILABLE_ALGORITHMS = ("fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc")
 
 
 class ControllerService(Service):
@@ -56,6 +59,10 @@ class ControllerService(Service):
         self._stepped_capture = -1
         self.clock = node.subscribe_latest(keys.clock(r), Clock)
         node.subscribe_queue(keys.loc_state(r), LocState, self.inbox)
+        # corridor changes at run time, kept per route for this and later trials
+        self.k_corridor = keys.ctrl_corridor(r)
+        self.corridor_updates: dict[str, list[CorridorUpdate]] = {}
+        node.subscribe_queue(self.k_corridor, CorridorUpdate, self.inbox)
         lim = cfg.limits
         self.limits = TrackerLimits(lim.v_max_mps, lim.w_max_radps,
                                     lim.max_curvature_per_m if lim.max_curvature_per_m > 0 else math.inf)
@@ -94,7 +101,8 @@ class ControllerService(Service):
                 law, ic_vertices = self._make_law(req.path_id, path)
                 tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps,
                                       loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2,
-                                      ic_vertices=ic_vertices, schedule=schedule)
+                                      ic_vertices=ic_vertices, schedule=schedule,
+                                      corridor=self._corridor(req.path_id, path))
             except (OSError, ValueError) as exc:
                 return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
             self.core = ControllerCore(path, tracker, self.cfg.period_s)
@@ -139,7 +147,31 @@ class ControllerService(Service):
             # learning off: the same controller on its nominal model only
             self.models = LocalModels(window, lambda: cache.hyper if self.learning else None,
                                       settings.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps)
-        return LBNMPCLaw(settings, self.cfg.period_s, self.models.model_for if self.models else (lambda ctx: None)), 0
+        model_for = self.models.model_for if self.models else (lambda ctx: None)
+        if algo == "mm-lb-nmpc":
+            return MMLBNMPCLaw(settings, self.cfg.period_s, model_for), 0
+        if algo in ("c-lb-nmpc", "rc-lb-nmpc"):
+            return RCLBNMPCLaw(settings, self.cfg.period_s, model_for, alpha=0.0 if algo == "c-lb-nmpc" else None), 0
+        return LBNMPCLaw(settings, self.cfg.period_s, model_for), 0
+
+    def _corridor(self, path_id: str, path: Path) -> Corridor:
+        c = self.cfg.corridor
+        corridor = Corridor(path.s, c.lateral_m, math.radians(c.heading_deg))
+        for f, t, left, right, head_deg in c.segments:
+            corridor.update(f, t, left, right, math.radians(head_deg))
+        for u in self.corridor_updates.get(path_id, []):
+            corridor.update(u.from_m, u.to_m, u.left_m, u.right_m, u.heading_rad)
+        return corridor
+
+    def _on_corridor(self, msg: CorridorUpdate) -> None:
+        self.corridor_updates.setdefault(msg.path_id, []).append(msg)
+        tracker = self.core.tracker if self.core is not None else None
+        changed = 0
+        if tracker is not None and msg.path_id == self.path_id and tracker.corridor is not None:
+            changed = tracker.corridor.update(msg.from_m, msg.to_m, msg.left_m, msg.right_m, msg.heading_rad)
+        self.log.info("corridor of %s over %.1f-%.1f m: [%+.2f, %+.2f] m, +-%.1f deg (%d vertices of the active "
+                      "route)", msg.path_id, msg.from_m, msg.to_m, msg.right_m, msg.left_m,
+                      math.degrees(msg.heading_rad), changed)
 
     def _learn_ilc(self) -> str:
         """Eq. 3.14 after a trial, saved per route; nothing is learned when learning is off."""
@@ -150,7 +182,9 @@ class ControllerService(Service):
         return f"ILC feedforward updated (trial {self.ilc.trials}, largest change {change:.3f} rad/s), saved to {where}"
 
     # --- control loop ------------------------------------------------------------------------
-    def on_message(self, key: str, msg: LocState) -> None:
+    def on_message(self, key: str, msg) -> None:
+        if key == self.k_corridor:
+            return self._on_corridor(msg)
         if self.core is None or msg.trial != self.trial:
             return
         if msg.path_id != self.path_id or msg.vertex >= len(self.core.path):

@@ -17,6 +17,7 @@ import numpy as np
 from common import se2
 from common.messages import LocState
 from common.path import Path
+from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 
@@ -50,7 +51,7 @@ class Decision:
 class PathTracker:
     def __init__(self, path: Path, law: SteeringLaw, limits: TrackerLimits, *, speed_mps: float,
                  loc_timeout_s: float = 0.5, stop_decel_mps2: float = 0.4, ic_vertices: int = 0,
-                 schedule: np.ndarray | None = None):
+                 schedule: np.ndarray | None = None, corridor: Corridor | None = None):
         self.path = path
         self.law = law
         self.limits = limits
@@ -62,6 +63,8 @@ class PathTracker:
         self.stop_decel = stop_decel_mps2
         self.ic_vertices = ic_vertices
         self.finished = False
+        self.corridor = corridor
+        self.halted = ""        # a law's safety stop (C-/RC-LB-NMPC): latched until the next trial
         self._last_ok: LocState | None = None
         self._prev_pose: tuple[int, np.ndarray] | None = None   # (capture tick, pose) one estimate back
         self._initial_error: tuple[float, float] | None = None
@@ -115,6 +118,8 @@ class PathTracker:
 
         if self.finished:
             return stop("finished", "end of route reached")
+        if self.halted:
+            return stop("stopped", self.halted)
         if last is None:
             return stop("waiting", f"no localization yet ({loc.status if loc else 'nothing received'})")
         if loc is not None and loc.status == "lost":
@@ -148,7 +153,8 @@ class PathTracker:
         ctx = StepContext(now_s=now_s, path=self.path, vertex=vertex, pose=pose, s_m=dist, e_lat_m=law_lat,
                           e_head_rad=law_head, v_mps=v, speed_at=self.speed_at, prev_cmd=self._last_cmd,
                           prev_pose=prev_pose, w_limit=self.limits.w_limit(v), w_limit_at=self.limits.w_limit,
-                          delayed_cmds=delayed, cmd_before_capture=before)
+                          delayed_cmds=delayed, cmd_before_capture=before, pose_cov=self._route_cov(last),
+                          corridor=self.corridor, v_max_mps=self.limits.v_max_mps)
         reason = ""
         try:
             res: LawResult = self.law.angular(ctx)
@@ -157,10 +163,23 @@ class PathTracker:
         except Exception as exc:  # numerical trouble in a law must not become a wild command
             res = self._fallback.angular(ctx)
             reason = f"{self.law.name} failed ({type(exc).__name__}: {exc}); feedback linearization this step"
-        w = max(-ctx.w_limit, min(ctx.w_limit, res.w_radps))
+        if res.stop_reason:
+            self.halted = res.stop_reason
+            return stop("stopped", res.stop_reason)
+        if res.v_mps is not None and math.isfinite(res.v_mps):
+            v = max(0.0, min(res.v_mps, self.limits.v_max_mps))
+        w_limit = self.limits.w_limit(v)
+        w = max(-w_limit, min(w_limit, res.w_radps))
         self._last_cmd = (v, w)
         return Decision(v, w, "tracking", reason, vertex, dist, lat, head, age, res.iterations, res.predicted,
                         res.info)
+
+    def _route_cov(self, loc: LocState) -> np.ndarray:
+        """The estimate's covariance turned from the vertex frame into the route's frame."""
+        cov = np.asarray(loc.cov_T_vertex_robot, dtype=float).reshape(3, 3)
+        th = float(self.path.poses[loc.vertex, 2])
+        R = np.array([[math.cos(th), -math.sin(th), 0.0], [math.sin(th), math.cos(th), 0.0], [0.0, 0.0, 1.0]])
+        return R @ cov @ R.T
 
     def _smoothed(self, vertex: int, lat: float, head: float) -> tuple[float, float]:
         """Eq. 3.16: over the first m_ic vertices the desired path blends from where the robot started

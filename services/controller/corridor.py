@@ -1,0 +1,44 @@
+"""The safety corridor around a taught route (thesis eq. 7.3-7.4): per vertex, how far the robot may be
+left (+) and right (-) of the route and how far its heading may turn from the taught one.
+
+It comes from the scenario's `[constraints]` (one width for the whole route) and can be narrowed or
+widened per stretch at run time (a guidance module or an operator, over Zenoh: `CorridorUpdate`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class Corridor:
+    def __init__(self, s: np.ndarray, lateral_m: float, heading_rad: float):
+        if lateral_m <= 0 or heading_rad <= 0:
+            raise ValueError("corridor limits must be > 0")
+        self.s = np.asarray(s, dtype=float)
+        n = len(self.s)
+        self.left = np.full(n, float(lateral_m))
+        self.right = np.full(n, -float(lateral_m))
+        self.heading = np.full(n, float(heading_rad))
+        self.version = 0
+
+    def update(self, from_m: float, to_m: float, left_m: float, right_m: float, heading_rad: float) -> int:
+        """Set the limits over [from_m, to_m] of the route; returns how many vertices changed."""
+        if not (left_m > right_m and heading_rad > 0 and to_m >= from_m):
+            raise ValueError("need left_m > right_m, heading_rad > 0 and to_m >= from_m")
+        sel = (self.s >= from_m) & (self.s <= to_m)
+        self.left[sel], self.right[sel], self.heading[sel] = left_m, right_m, heading_rad
+        self.version += 1
+        return int(np.count_nonzero(sel))
+
+    def at(self, s_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(right, left, heading) limits at distances along the route (the nearest vertex's)."""
+        i = np.clip(np.searchsorted(self.s, np.asarray(s_m, dtype=float)), 0, len(self.s) - 1)
+        return self.right[i], self.left[i], self.heading[i]
+
+    def contains(self, s_m: float, lateral_m: float, heading_rad: float) -> str:
+        """'' when (lateral, heading) is inside the corridor at s_m, else why not."""
+        lo, hi, h = (float(x) for x in self.at(s_m))
+        if not lo <= lateral_m <= hi:
+            return f"lateral error {lateral_m:+.3f} m outside the corridor [{lo:+.2f}, {hi:+.2f}] m"
+        if abs(heading_rad) > h:
+            return f"heading error {np.degrees(heading_rad):+.1f} deg outside the corridor (+-{np.degrees(h):.1f} deg)"
+        return ""

@@ -1,0 +1,288 @@
+"""The uncertainty-aware LB-NMPC laws: Min-Max (thesis ch. 6) and (Robust) Constrained (ch. 7).
+
+Both start like LB-NMPC (nmpc.py: desired states from the schedule, the delayed estimate carried to now,
+the GP mean of the local window in the model) and add the horizon's covariance from the sigma-point
+transform (uncertainty.py), started from the localizer's covariance carried through the delay (7.12).
+
+MM-LB-NMPC (eq. 6.2-6.9): the cost is that of the worst of the 2^3 boundary sequences
+xbar_j + Gamma_l 3 sigma_j (eq. 6.5; errors along, lateral and heading in the route frame), and the
+Gauss-Newton step linearizes it around that sequence with the mean's Jacobian (eq. 6.7-6.8). The
+covariance is computed once per step at the warm start (it moves little within a solve), and the step
+length beta of eq. 6.9 is the Levenberg-Marquardt acceptance of gauss_newton.py: a step that raises the
+worst-case cost is shortened instead of chattering between scenarios.
+
+C-/RC-LB-NMPC (eq. 7.2-7.6): linear and angular speeds are both optimized; the cost weighs the
+errors of the mean sequence and the deviation from the desired inputs (scheduled speed, route turn
+rate); the lateral and heading errors of the mean must stay inside the corridor tightened by
+alpha * sigma (eq. 7.4; alpha = 0 is C-LB-NMPC); speeds and rates stay inside the actuator limits
+(eq. 7.5). Solved as SQP: each iteration linearizes the rollout (analytic sensitivities for v and w)
+and the lateral sigma's dependence on speed, and solves the QP with OSQP; violating a tightened limit
+is possible only through a slack with a heavy L1 price, so the QP is always feasible and the law says
+when it had to use it. When even the first predicted step's 3-sigma region does not fit inside the
+corridor, or the robot is already outside it, the law stops the robot and says why.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from services.controller.gauss_newton import gauss_newton
+from services.controller.laws import LawResult, StepContext
+from services.controller.nmpc import HorizonProblem, NMPCSettings, Plan, build_problem
+from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
+                                             route_sigmas, sigma_point_step)
+
+SIGNS = np.array([[sx, sy, sh] for sx in (1, -1) for sy in (1, -1) for sh in (1, -1)], dtype=float)  # eq. 6.5
+
+
+def _variance_model(gp, s: NMPCSettings) -> DisturbanceVariance:
+    return DisturbanceVariance(gp, PriorStd(base=s.prior_std_base, per_mps=s.prior_std_per_mps), s.process_std)
+
+
+def _disturbances(gp, A: np.ndarray, var: DisturbanceVariance) -> tuple[np.ndarray, np.ndarray]:
+    mean = np.zeros((len(A), 3)) if gp is None else gp.predict(A)[0]
+    return mean, var(A)
+
+
+def initial_covariance(ctx: StepContext, problem: HorizonProblem, gp, var: DisturbanceVariance,
+                       s: NMPCSettings, dt: float) -> np.ndarray:
+    """The localizer's covariance, carried through the periods of localization delay (eq. 7.12)."""
+    Sigma = np.array(ctx.pose_cov, dtype=float) if ctx.pose_cov is not None else np.diag([1e-4, 1e-4, 1e-4])
+    trace = getattr(problem, "delay_trace", [])
+    if trace:
+        A = np.array([t[1] for t in trace])
+        G, V = _disturbances(gp, A, var)
+        for (x, _a, v, w), g, vg in zip(trace, G, V):
+            Sigma = sigma_point_step(x, Sigma, g, vg, v, w, dt, s.sp_gamma)
+    return Sigma
+
+
+def horizon_sigmas(problem: HorizonProblem, X: np.ndarray, A: np.ndarray, v: np.ndarray, w: np.ndarray, gp,
+                   var: DisturbanceVariance, Sigma0: np.ndarray, s: NMPCSettings, dt: float):
+    """Covariances (K+1, 3, 3) and the route-frame standard deviations (K, 3) of x_1..x_K."""
+    G, V = _disturbances(gp, A, var)
+    Sig = propagate(X, A, G, V, v, w, Sigma0, dt, s.sp_gamma)
+    direction = np.arctan2(problem.sinD[1:], problem.cD[1:])
+    return Sig, route_sigmas(Sig, direction)
+
+
+class MMLBNMPCLaw:
+    """Min-Max LB-NMPC (thesis ch. 6). `model_for(ctx)`: the GP of the local window or None."""
+    name = "mm-lb-nmpc"
+
+    def __init__(self, settings: NMPCSettings, dt: float, model_for: Callable[[StepContext], object] = lambda c: None):
+        self.settings = settings
+        self.dt = dt
+        self.model_for = model_for
+        self._prev: np.ndarray | None = None
+        self.last_plan: Plan | None = None
+
+    def angular(self, ctx: StepContext) -> LawResult:
+        s = self.settings
+        gp = self.model_for(ctx)
+        problem, w_limit = build_problem(ctx, s, self.dt, gp)
+        var = _variance_model(gp, s)
+        u0 = np.concatenate([self._prev[1:], self._prev[-1:]]) if self._prev is not None else problem.w_ref.copy()
+        u0 = np.clip(u0, -w_limit, w_limit)
+        A = np.empty((problem.K, 9))
+        X0, _ = problem.rollout(u0, with_jac=False, a_out=A)
+        Sigma0 = initial_covariance(ctx, problem, gp, var, s, self.dt)
+        _, sig = horizon_sigmas(problem, X0, A, problem.v, u0, gp, var, Sigma0, s, self.dt)
+        bound = s.mm_sigmas * sig                                   # (K, 3)
+        self.last_sigmas = sig
+        worst = {"l": 0}
+
+        def boundary_errors(E: np.ndarray) -> np.ndarray:
+            cands = E[None] + SIGNS[:, None, :] * bound[None]       # (8, K, 3)
+            costs = np.einsum("lkc,c->l", cands ** 2, problem.sqrt_q ** 2)
+            worst["l"] = int(np.argmax(costs))                      # eq. 6.6
+            return cands[worst["l"]]
+
+        problem.cost_errors = boundary_errors
+        res = gauss_newton(problem.residual, u0, -w_limit, w_limit, max_iter=s.max_iter, tol=s.tol,
+                           max_evals=s.max_evals)
+        self._prev = res.u
+        X, _ = problem.rollout(res.u, with_jac=False)
+        self.last_plan = Plan(res.u, X, problem.D, res.cost, res.iterations, res.converged)
+        return LawResult(float(res.u[0]), res.iterations, X[1:],
+                         {"cost": res.cost, "converged": res.converged, "status": res.status,
+                          "evaluations": res.evaluations, "learned": gp is not None,
+                          "worst_case": int(worst["l"]), "sigma_lat_max_m": float(sig[:, 1].max()),
+                          "sigma_head_max_rad": float(sig[:, 2].max())})
+
+
+class RCLBNMPCLaw:
+    """(Robust) Constrained LB-NMPC (thesis ch. 7); alpha = 0 gives C-LB-NMPC."""
+
+    def __init__(self, settings: NMPCSettings, dt: float, model_for: Callable[[StepContext], object] = lambda c: None,
+                 alpha: float | None = None):
+        self.settings = settings
+        self.dt = dt
+        self.model_for = model_for
+        self.alpha = settings.alpha if alpha is None else alpha
+        self.name = "rc-lb-nmpc" if self.alpha > 0 else "c-lb-nmpc"
+        self._prev: tuple[np.ndarray, np.ndarray] | None = None
+        self.last_plan: Plan | None = None
+
+    # --- residuals of eq. 7.2 with both inputs -------------------------------------------------------
+    def _residual(self, p: HorizonProblem, v: np.ndarray, w: np.ndarray, A: np.ndarray):
+        s = self.settings
+        K = p.K
+        X, Sw, Sv = p.rollout(w, with_jac=True, v=v, with_v_jac=True, a_out=A)
+        E = p.errors(X)
+        kappa = p.kappa
+        u_prev_v, u_prev_w = p.u_prev
+        sr, srv, sdr, sdv, sqt = math.sqrt(s.r_w), math.sqrt(s.r_v), math.sqrt(s.r_dw), math.sqrt(s.r_dv), p.sqrt_qt
+        term = E[-1, 1] + s.lookahead_m * math.sin(E[-1, 2])
+        r = np.concatenate([(E * p.sqrt_q).ravel(), sr * (w - v * kappa), srv * (v - p.v),
+                            sdr * np.diff(np.concatenate([[u_prev_w], w])),
+                            sdv * np.diff(np.concatenate([[u_prev_v], v])), [sqt * term]])
+        J = np.zeros((len(r), 2 * K))                    # columns: v_0..v_{K-1}, w_0..w_{K-1}
+        cd, sd = p.cD[1:], p.sinD[1:]
+        dE = np.zeros((K, 3, 2 * K))                     # d(along, lat, head)_j / d(v, w)
+        for cols, S in ((slice(0, K), Sv), (slice(K, 2 * K), Sw)):
+            Sx = S[1:]
+            dE[:, 0, cols] = cd[:, None] * Sx[:, 0] + sd[:, None] * Sx[:, 1]
+            dE[:, 1, cols] = -sd[:, None] * Sx[:, 0] + cd[:, None] * Sx[:, 1]
+            dE[:, 2, cols] = Sx[:, 2]
+        J[:3 * K] = (dE * p.sqrt_q[None, :, None]).reshape(3 * K, 2 * K)
+        eye, diff = np.eye(K), np.eye(K) - np.eye(K, k=-1)
+        J[3 * K:4 * K, K:] = sr * eye
+        J[3 * K:4 * K, :K] = -sr * np.diag(kappa)
+        J[4 * K:5 * K, :K] = srv * eye
+        J[5 * K:6 * K, K:] = sdr * diff
+        J[6 * K:7 * K, :K] = sdv * diff
+        J[7 * K] = sqt * (dE[-1, 1] + s.lookahead_m * math.cos(E[-1, 2]) * dE[-1, 2])
+        return X, E, dE, r, J
+
+    def angular(self, ctx: StepContext) -> LawResult:
+        s = self.settings
+        corridor = ctx.corridor
+        if corridor is None:
+            raise ValueError(f"{self.name} needs a corridor ([constraints])")
+        why = corridor.contains(ctx.s_m, ctx.e_lat_m, ctx.e_head_rad)
+        if why:
+            return LawResult(0.0, 0, None, {"learned": False}, v_mps=0.0, stop_reason=f"{why}: stopped")
+        gp = self.model_for(ctx)
+        p, _ = build_problem(ctx, s, self.dt, gp)
+        K, dt = p.K, self.dt
+        var = _variance_model(gp, s)
+        Sigma0 = initial_covariance(ctx, p, gp, var, s, dt)
+        v_max = np.minimum(np.full(K, ctx.v_max_mps), np.maximum(p.v, s.v_min_mps))   # never above the desired
+        lo_lat, hi_lat, head_lim = corridor.at(p.sD[1:])
+        if self._prev is not None:
+            v = np.clip(np.concatenate([self._prev[0][1:], self._prev[0][-1:]]), s.v_min_mps, v_max)
+            w = np.concatenate([self._prev[1][1:], self._prev[1][-1:]])
+        else:
+            v, w = p.v.copy(), p.w_ref.copy()
+        alpha = self.alpha
+        w_lim_of = np.vectorize(lambda vj: ctx.w_limit_at(max(vj, s.v_min_mps)))
+
+        def evaluate(v, w):
+            """Everything one SQP iterate needs, and its merit: cost + slack price of the violations."""
+            A = np.empty((K, 9))
+            X, E, dE, r, J = self._residual(p, v, w, A)
+            if alpha > 0:
+                Sig, sig = horizon_sigmas(p, X, A, v, w, gp, var, Sigma0, s, dt)
+            else:
+                Sig, sig = None, np.zeros((K, 3))
+            t = alpha * sig
+            viol = (np.maximum(E[:, 1] + t[:, 1] - hi_lat, 0) + np.maximum(lo_lat - E[:, 1] + t[:, 1], 0)
+                    + np.maximum(np.abs(E[:, 2]) + t[:, 2] - head_lim, 0))
+            merit = 0.5 * float(r @ r) + s.slack_weight * float(viol.sum())
+            return dict(v=v, w=w, X=X, E=E, dE=dE, r=r, J=J, Sig=Sig, sig=sig, merit=merit, viol=float(viol.max()))
+
+        cur = evaluate(v, w)
+        sig0 = cur["sig"][0]
+        if alpha > 0 and min(hi_lat[0] - lo_lat[0] - 2 * alpha * sig0[1], head_lim[0] - alpha * sig0[2]) <= 0:
+            return LawResult(0.0, 0, cur["X"][1:], {"learned": gp is not None, "sigma_lat_max_m": float(sig0[1])},
+                             v_mps=0.0, stop_reason=f"predicted uncertainty no longer fits the corridor "
+                                                    f"({alpha:g} sigma: {alpha * sig0[1]:.3f} m lateral, "
+                                                    f"{math.degrees(alpha * sig0[2]):.1f} deg heading): stopped")
+        iters, status = 0, "budget"
+        for it in range(s.sqp_iter):
+            iters = it + 1
+            v, w = cur["v"], cur["w"]
+            dsig_v = (lateral_sigma_speed_jacobian(cur["X"], cur["Sig"], v, np.arctan2(p.sinD[1:], p.cD[1:]),
+                                                   cur["sig"][:, 1], dt) if alpha > 0 else np.zeros((K, K)))
+            dx, _ = self._qp(cur["r"], cur["J"], cur["E"], cur["dE"], cur["sig"], dsig_v, alpha, lo_lat, hi_lat,
+                             head_lim, v, w, v_max, w_lim_of(v))
+            if dx is None:
+                status = "qp-failed"
+                break
+            accepted = None
+            for beta in (1.0, 0.5, 0.25):                 # eq. 7.11's beta, by the merit function
+                cand = evaluate(np.clip(v + beta * dx[:K], s.v_min_mps, v_max), w + beta * dx[K:])
+                if cand["merit"] < cur["merit"] - 1e-12:
+                    accepted = cand
+                    break
+            if accepted is None:
+                status = "converged" if np.max(np.abs(dx)) < 10 * s.tol else "stalled"
+                break
+            step = max(np.max(np.abs(accepted["v"] - v)), np.max(np.abs(accepted["w"] - w)))
+            cur = accepted
+            if step < s.tol:
+                status = "converged"
+                break
+        v, w, sig, r = cur["v"], cur["w"], cur["sig"], cur["r"]
+        slack_used = cur["viol"]
+        X = p.rollout(w, with_jac=False, v=v)[0]
+        self._prev = (v, w)
+        self.last_plan = Plan(w, X, p.D, float(0.5 * r @ r), iters, status == "converged")
+        return LawResult(float(w[0]), iters, X[1:],
+                         {"cost": float(0.5 * r @ r), "converged": status == "converged", "status": status,
+                          "learned": gp is not None, "violation": slack_used,
+                          "sigma_lat_max_m": float(sig[:, 1].max()), "sigma_head_max_rad": float(sig[:, 2].max())},
+                         v_mps=float(v[0]))
+
+    def _qp(self, r, J, E, dE, sig, dsig_v, alpha, lo_lat, hi_lat, head_lim, v, w, v_max, w_lim):
+        """One SQP step: min 1/2 |r + J d|^2 + rho 1's, linearized tightened corridor (with slack s >= 0),
+        bounds on v + dv and w + dw, and a trust region. Returns (d, largest slack used) or (None, 0)."""
+        s = self.settings
+        K = len(v)
+        n = 2 * K
+        H = J.T @ J + 1e-6 * np.eye(n)
+        g = J.T @ r
+        # variables: [d (2K), s_lat (K), s_head (K)]
+        nv = n + 2 * K
+        # slack priced linearly (exact penalty) and quadratically (keeps ADMM well conditioned)
+        P = sp.block_diag([sp.csc_matrix(np.triu(H)), sp.identity(2 * K) * s.slack_weight], format="csc")
+        q = np.concatenate([g, np.full(2 * K, s.slack_weight)])
+        Jlat = dE[:, 1, :]
+        Jhead = dE[:, 2, :]
+        tight = alpha * sig
+        dtight = np.zeros((K, n))
+        dtight[:, :K] = alpha * dsig_v
+        I = sp.identity(K, format="csc")
+        Z = sp.csc_matrix((K, K))
+        inf = np.full(K, np.inf)
+        rows = [
+            # lat + tight + (Jlat + dtight) d - s_lat <= hi
+            (sp.hstack([sp.csc_matrix(Jlat + dtight), -I, Z]), -inf, hi_lat - E[:, 1] - tight[:, 1]),
+            # lat - tight + (Jlat - dtight) d + s_lat >= lo
+            (sp.hstack([sp.csc_matrix(Jlat - dtight), I, Z]), lo_lat - E[:, 1] + tight[:, 1], inf),
+            (sp.hstack([sp.csc_matrix(Jhead), Z, -I]), -inf, head_lim - E[:, 2] - tight[:, 2]),
+            (sp.hstack([sp.csc_matrix(Jhead), Z, I]), -head_lim - E[:, 2] + tight[:, 2], inf),
+        ]
+        trust_v, trust_w = 0.5, 1.0
+        lo_d = np.concatenate([np.maximum(s.v_min_mps - v, -trust_v), np.maximum(-w_lim - w, -trust_w)])
+        hi_d = np.concatenate([np.minimum(v_max - v, trust_v), np.minimum(w_lim - w, trust_w)])
+        hi_d = np.maximum(hi_d, lo_d)
+        rows.append((sp.hstack([sp.identity(n), sp.csc_matrix((n, 2 * K))]), lo_d, hi_d))
+        rows.append((sp.hstack([sp.csc_matrix((2 * K, n)), sp.identity(2 * K)]), np.zeros(2 * K), np.full(2 * K, np.inf)))
+        Acon = sp.vstack([m for m, _, _ in rows], format="csc")
+        lo = np.concatenate([l for _, l, _ in rows])
+        hi = np.concatenate([u for _, _, u in rows])
+        solver = osqp.OSQP()
+        solver.setup(P, q, Acon, lo, hi, verbose=False, eps_abs=1e-5, eps_rel=1e-5, max_iter=2000, polishing=True)
+        res = solver.solve(raise_error=False)
+        # solved, solved inaccurate, or out of ADMM iterations: the point is still a usable direction,
+        # the merit test of the caller decides whether it helps
+        if res.x is None or not np.all(np.isfinite(res.x)) or res.info.status_val not in (1, 2, -2, 7):
+            return None, 0.0
+        x = res.x
+        return x[:n], float(max(np.max(x[n:], initial=0.0), 0.0))

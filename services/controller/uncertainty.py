@@ -1,0 +1,129 @@
+"""Uncertainty along the horizon (thesis 6.2.2, 7.3.2): the sigma-point transform of eq. 6.10-6.14.
+
+The state x_j ~ N(xbar_j, Sigma_j) and the disturbance g(a_j) ~ N(mu(a_j), Sigma_gp(a_j)) are stacked
+into z_j = (xbar_j, mu_j) with P_j = diag(Sigma_j, Sigma_gp); its 4n+1 = 13 sigma points go through the
+unicycle step x' = f(x, u) + R(theta) m (the disturbance is in the body frame, as experiences are built),
+and are recombined with the weights of eq. 6.14 (tuning gamma). The mean sequence is the deterministic
+one of eq. 7.6b (the rollout in nmpc.py, whose Jacobians the solvers use); the sigma points give the
+covariance around it.
+
+Where the GP has no data (trial 1, or a speed never driven there) its variance is its prior: sigma_f^2
+of the store's hyperparameters, or, before any fit, `PriorStd` (the a-priori uncertainty of the
+unicycle model per control period, growing with speed). The GP's latent variance is used plus a small
+`process_std` floor for what never repeats; the measurement noise sigma_n, mostly localization jitter
+between consecutive estimates, is not a disturbance of the motion and is left out.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, kw_only=True)
+class PriorStd:
+    """Per control period, in the body frame: std = base + per_mps * |v| (m, m, rad)."""
+    base: tuple[float, float, float] = (0.002, 0.004, 0.012)
+    per_mps: tuple[float, float, float] = (0.004, 0.008, 0.025)
+
+    def __post_init__(self):
+        if len(self.base) != 3 or len(self.per_mps) != 3 or min(*self.base, *self.per_mps) < 0:
+            raise ValueError("prior std: three non-negative values each for base and per_mps")
+
+
+class DisturbanceVariance:
+    """Var[g(a)] per output for a batch of inputs: the GP's (latent) variance, or the prior."""
+
+    def __init__(self, gp, prior: PriorStd, process_std: tuple[float, float, float]):
+        self.gp = gp
+        self.prior = prior
+        self.floor = np.square(np.asarray(process_std, dtype=float))
+
+    def __call__(self, A: np.ndarray) -> np.ndarray:
+        if self.gp is None:
+            std = np.asarray(self.prior.base) + np.outer(np.abs(A[:, 5]), self.prior.per_mps)
+            return std ** 2 + self.floor
+        return self.gp.predict(A)[1] + self.floor
+
+
+def sigma_point_step(x: np.ndarray, Sigma: np.ndarray, mu: np.ndarray, var_g: np.ndarray, v: float, w: float,
+                     dt: float, gamma: float) -> np.ndarray:
+    """Eq. 6.10-6.14 for one period: the covariance of x_{j+1} given x_j ~ N(x, Sigma) and the
+    disturbance ~ N(mu, diag(var_g)). Returns Sigma_{j+1} (3x3)."""
+    n2 = 6
+    scale = math.sqrt(n2 + gamma)
+    S = np.zeros((6, 6))
+    S[:3, :3] = _chol3(Sigma)
+    S[3:, 3:] = np.diag(np.sqrt(np.maximum(var_g, 0.0)))
+    Z = np.empty((2 * n2 + 1, 6))
+    Z[0, :3], Z[0, 3:] = x, mu
+    Z[1:n2 + 1] = Z[0] + scale * S.T
+    Z[n2 + 1:] = Z[0] - scale * S.T
+    th = Z[:, 2]
+    c, s = np.cos(th), np.sin(th)
+    Xn = np.column_stack([Z[:, 0] + v * dt * c + c * Z[:, 3] - s * Z[:, 4],
+                          Z[:, 1] + v * dt * s + s * Z[:, 3] + c * Z[:, 4],
+                          th + w * dt + Z[:, 5]])
+    w0 = gamma / (n2 + gamma)
+    wi = 0.5 / (n2 + gamma)
+    mean = w0 * Xn[0] + wi * Xn[1:].sum(axis=0)
+    d = Xn - mean
+    return w0 * np.outer(d[0], d[0]) + wi * d[1:].T @ d[1:]
+
+
+def _chol3(Sigma: np.ndarray) -> np.ndarray:
+    """Cholesky of a 3x3 covariance that may be singular (a perfectly known heading, say)."""
+    try:
+        return np.linalg.cholesky(Sigma + 1e-12 * np.eye(3))
+    except np.linalg.LinAlgError:
+        vals, vecs = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
+        return vecs * np.sqrt(np.maximum(vals, 0.0))
+
+
+def propagate(X: np.ndarray, A: np.ndarray, G: np.ndarray, var_g: np.ndarray, v: np.ndarray, w: np.ndarray,
+              Sigma0: np.ndarray, dt: float, gamma: float) -> np.ndarray:
+    """Covariances (K+1, 3, 3) along a predicted mean sequence X (K+1, 3) with disturbance means G (K, 3)
+    and variances var_g (K, 3)."""
+    K = len(v)
+    out = np.empty((K + 1, 3, 3))
+    out[0] = Sigma0
+    for j in range(K):
+        out[j + 1] = sigma_point_step(X[j], out[j], G[j], var_g[j], float(v[j]), float(w[j]), dt, gamma)
+    return out
+
+
+def route_sigmas(Sigmas: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Standard deviations (K, 3) of the along, lateral and heading errors of x_1..x_K, measured along
+    the route's `direction` (K,) at each desired pose."""
+    c, s = np.cos(direction), np.sin(direction)
+    Sxx, Sxy, Syy = Sigmas[1:, 0, 0], Sigmas[1:, 0, 1], Sigmas[1:, 1, 1]
+    along = c * c * Sxx + 2 * c * s * Sxy + s * s * Syy
+    lat = s * s * Sxx - 2 * c * s * Sxy + c * c * Syy
+    return np.sqrt(np.maximum(np.column_stack([along, lat, Sigmas[1:, 2, 2]]), 0.0))
+
+
+def lateral_sigma_speed_jacobian(X: np.ndarray, Sigmas: np.ndarray, v: np.ndarray, direction: np.ndarray,
+                                 sig_lat: np.ndarray, dt: float) -> np.ndarray:
+    """d sigma_lat,j / d v_i (K, K), to first order (the linearized propagation Sigma' = A Sigma A' + Q with
+    A = df/dx): faster driving turns heading uncertainty into lateral uncertainty sooner. The constrained
+    law needs this to know that slowing down shrinks the tightened corridor margin."""
+    K = len(v)
+    out = np.zeros((K, K))
+    n = np.column_stack([-np.sin(direction), np.cos(direction), np.zeros(K)])   # lateral direction
+    th = X[:-1, 2]
+    As = np.zeros((K, 3, 3))
+    As[:, 0, 0] = As[:, 1, 1] = As[:, 2, 2] = 1.0
+    As[:, 0, 2] = -v * dt * np.sin(th)
+    As[:, 1, 2] = v * dt * np.cos(th)
+    for i in range(K):
+        dA = np.zeros((3, 3))
+        dA[0, 2], dA[1, 2] = -dt * math.sin(th[i]), dt * math.cos(th[i])
+        dS = dA @ Sigmas[i] @ As[i].T
+        dS = dS + dS.T                                     # d Sigma_{i+1} / d v_i
+        for j in range(i, K):
+            if j > i:
+                dS = As[j] @ dS @ As[j].T
+            if sig_lat[j] > 1e-9:
+                out[j, i] = float(n[j] @ dS @ n[j]) / (2.0 * sig_lat[j])
+    return out

@@ -1,0 +1,171 @@
+"""Sigma-point prediction, MM-LB-NMPC and (R)C-LB-NMPC against independent references: Monte Carlo
+for the covariance, finite differences for the new sensitivities, plain LB-NMPC where the extensions
+must reduce to it, and the corridor the constrained law must keep its prediction in."""
+import math
+
+import numpy as np
+import pytest
+
+from common.gp import GaussianProcess, SEHyper
+from common.path import Path
+from services.controller.corridor import Corridor
+from services.controller.gauss_newton import gauss_newton
+from services.controller.laws import StepContext
+from services.controller.nmpc import NMPCSettings, build_problem
+from services.controller.robust_nmpc import SIGNS, MMLBNMPCLaw, RCLBNMPCLaw
+from services.controller.uncertainty import lateral_sigma_speed_jacobian, propagate, route_sigmas, sigma_point_step
+
+DT = 0.1
+
+
+def arc_path():
+    th = np.concatenate([np.zeros(40), np.linspace(0, 1.2, 60), np.full(60, 1.2)])
+    xy = np.cumsum(0.25 * np.column_stack([np.cos(th), np.sin(th)]), axis=0)
+    return Path("arc", np.column_stack([xy, th]))
+
+
+def ctx_for(path, pose, v=0.8, cov=None, corridor=None, prev_cmd=None):
+    pr = path.project(pose)
+    return StepContext(now_s=0.0, path=path, vertex=pr.vertex, pose=np.asarray(pose, dtype=float), s_m=pr.distance_m,
+                       e_lat_m=pr.lateral_m, e_head_rad=pr.heading_rad, v_mps=v, speed_at=lambda _s: v,
+                       prev_cmd=prev_cmd or (v, 0.0), prev_pose=None, w_limit=2.0, w_limit_at=lambda _v: 2.0,
+                       pose_cov=np.diag([1e-4, 1e-4, 1e-4]) if cov is None else cov, corridor=corridor,
+                       v_max_mps=1.0)
+
+
+def test_sigma_point_step_matches_monte_carlo():
+    rng = np.random.default_rng(0)
+    x = np.array([1.0, 2.0, 0.3])
+    Sigma = np.array([[4e-4, 1e-4, 0.0], [1e-4, 9e-4, 2e-4], [0.0, 2e-4, 2.5e-3]])
+    mu, var_g = np.array([0.01, -0.02, 0.03]), np.array([1e-5, 4e-5, 1e-4])
+    v, w = 1.2, 0.4
+    ours = sigma_point_step(x, Sigma, mu, var_g, v, w, DT, gamma=2.0)
+    n = 400_000
+    X = rng.multivariate_normal(x, Sigma, n)
+    M = mu + rng.normal(size=(n, 3)) * np.sqrt(var_g)
+    c, s = np.cos(X[:, 2]), np.sin(X[:, 2])
+    Xn = np.column_stack([X[:, 0] + v * DT * c + c * M[:, 0] - s * M[:, 1],
+                          X[:, 1] + v * DT * s + s * M[:, 0] + c * M[:, 1], X[:, 2] + w * DT + M[:, 2]])
+    mc = np.cov(Xn.T)
+    np.testing.assert_allclose(ours, mc, rtol=0.03, atol=2e-6)
+
+
+def test_speed_sensitivities_match_finite_differences():
+    rng = np.random.default_rng(2)
+    path = arc_path()
+    X = rng.normal(size=(150, 9)) * [3, 0.1, 0.05, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3] + [12, 0, 0, 0.7, 0.2, 0.7, 0.2, 0.7, 0.2]
+    Y = np.column_stack([0.01 * np.sin(X[:, 0]), 0.01 * np.cos(3 * X[:, 5]), 0.02 * np.tanh(2 * X[:, 5] - X[:, 6])])
+    gp = GaussianProcess(X, Y, [SEHyper(np.array([2.0, .2, .1, .3, .4, .3, .35, .3, .4]), 0.02, 0.001)] * 3)
+    pose = path.pose_at(11.0) + np.array([0.0, 0.05, 0.02])
+    ctx = ctx_for(path, pose)
+    for model in (None, gp):
+        p, _ = build_problem(ctx, NMPCSettings(), DT, model)
+        w = p.w_ref + 0.1 * rng.normal(size=p.K)
+        v = p.v + 0.1 * rng.normal(size=p.K)
+        _, _, Sv = p.rollout(w, with_jac=True, v=v, with_v_jac=True)
+        h = 1e-6
+        fd = np.stack([(p.rollout(w, False, v=v + h * e)[0] - p.rollout(w, False, v=v - h * e)[0]) / (2 * h)
+                       for e in np.eye(p.K)], axis=-1)
+        np.testing.assert_allclose(Sv, fd, atol=1e-7)
+
+
+def test_lateral_sigma_speed_jacobian_matches_finite_differences_of_the_propagation():
+    path = arc_path()
+    ctx = ctx_for(path, path.pose_at(11.0))
+    p, _ = build_problem(ctx, NMPCSettings(), DT, None)
+    K = p.K
+    direction = np.arctan2(p.sinD[1:], p.cD[1:])
+    G, V = np.zeros((K, 3)), np.tile([1e-6, 4e-6, 4e-4], (K, 1))
+    S0 = np.diag([1e-4, 1e-4, 1e-3])
+
+    def sig_lat(v):
+        X = p.rollout(p.w_ref, False, v=v)[0]
+        return route_sigmas(propagate(X, None, G, V, v, p.w_ref, S0, DT, 2.0), direction)[:, 1]
+
+    v = p.v.copy()
+    X = p.rollout(p.w_ref, False, v=v)[0]
+    Sig = propagate(X, None, G, V, v, p.w_ref, S0, DT, 2.0)
+    ours = lateral_sigma_speed_jacobian(X, Sig, v, direction, route_sigmas(Sig, direction)[:, 1], DT)
+    h = 1e-5
+    fd = np.column_stack([(sig_lat(v + h * e) - sig_lat(v - h * e)) / (2 * h) for e in np.eye(K)])
+    assert np.all(ours >= -1e-9)                       # faster never makes the lateral spread smaller
+    np.testing.assert_allclose(ours, fd, rtol=0.15, atol=2e-4)
+
+
+def no_uncertainty(**kw):
+    return NMPCSettings(prior_std_base=(0, 0, 0), prior_std_per_mps=(0, 0, 0), process_std=(0, 0, 0), **kw)
+
+
+def test_min_max_without_uncertainty_is_lb_nmpc():
+    path = arc_path()
+    ctx = ctx_for(path, path.pose_at(9.0) + np.array([0.0, 0.08, -0.05]), cov=np.zeros((3, 3)))
+    st = no_uncertainty(tol=1e-9, max_iter=30, max_evals=60)
+    mm = MMLBNMPCLaw(st, DT).angular(ctx)
+    p, lim = build_problem(ctx, st, DT, None)
+    lb = gauss_newton(p.residual, p.w_ref.copy(), -lim, lim, max_iter=30, tol=1e-9, max_evals=60)
+    assert mm.w_radps == pytest.approx(float(lb.u[0]), abs=1e-4)
+
+
+def test_min_max_lowers_the_worst_case_cost_below_lb_nmpcs_solution():
+    """Eq. 6.3: the min-max solution's worst boundary sequence costs less than LB-NMPC's would."""
+    path = arc_path()
+    ctx = ctx_for(path, path.pose_at(4.0) + np.array([0.0, 0.15, 0.0]))
+    st = NMPCSettings(max_evals=30, max_iter=30, prior_std_base=(0.002, 0.01, 0.02))
+    law = MMLBNMPCLaw(st, DT)
+    mm = law.angular(ctx)
+    p, lim = build_problem(ctx, st, DT, None)
+    lb = gauss_newton(p.residual, p.w_ref.copy(), -lim, lim, max_evals=30, max_iter=30)
+    bound = 3.0 * np.array(law.last_sigmas)
+
+    def worst_cost(u):
+        E = p.errors(p.rollout(u, False)[0])
+        worst = max(range(8), key=lambda l: float(np.sum((E + SIGNS[l] * bound) ** 2 * p.sqrt_q ** 2)))
+        p.cost_errors = lambda E: E + SIGNS[worst] * bound
+        try:
+            return p.cost(u)
+        finally:
+            p.cost_errors = None
+
+    assert mm.info["sigma_lat_max_m"] > 0.01
+    assert worst_cost(law.last_plan.w) < 0.95 * worst_cost(lb.u)
+
+
+def test_constrained_law_with_a_wide_corridor_tracks_like_lb_nmpc():
+    path = arc_path()
+    wide = Corridor(path.s, 5.0, math.radians(80))
+    ctx = ctx_for(path, path.pose_at(9.0) + np.array([0.0, 0.06, -0.03]), corridor=wide)
+    st = NMPCSettings(r_v=1e4, sqp_iter=15, tol=1e-7)     # the speed pinned to the schedule
+    c = RCLBNMPCLaw(st, DT, alpha=0.0).angular(ctx)
+    p, lim = build_problem(ctx, st, DT, None)
+    lb = gauss_newton(p.residual, p.w_ref.copy(), -lim, lim, max_iter=30, tol=1e-9, max_evals=60)
+    assert c.v_mps == pytest.approx(0.8, abs=2e-3)
+    assert c.w_radps == pytest.approx(float(lb.u[0]), abs=0.02)
+
+
+def test_robust_law_keeps_the_3_sigma_region_inside_a_narrow_corridor_by_slowing_down():
+    path = arc_path()
+    narrow = Corridor(path.s, 0.12, math.radians(20))
+    pose = path.pose_at(8.0) + np.array([0.0, 0.05, 0.0])
+    st = NMPCSettings(sqp_iter=10)
+    law = RCLBNMPCLaw(st, DT)
+    res = law.angular(ctx_for(path, pose, v=1.0, corridor=narrow))
+    assert not res.stop_reason and res.info["violation"] < 0.02
+    plan = law.last_plan
+    p, _ = build_problem(ctx_for(path, pose, v=1.0, corridor=narrow), st, DT, None)
+    lat = p.errors(plan.poses)[:, 1]
+    sig = res.info["sigma_lat_max_m"]
+    assert np.max(np.abs(lat)) + 3 * sig <= 0.12 + 1e-3 or np.max(lat) <= 0.12
+    assert res.v_mps < 1.0                            # slower than scheduled while this uncertain
+    c = RCLBNMPCLaw(st, DT, alpha=0.0).angular(ctx_for(path, pose, v=1.0, corridor=narrow))
+    assert c.v_mps > res.v_mps                        # the overconfident variant does not slow as much
+
+
+def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit():
+    path = arc_path()
+    corridor = Corridor(path.s, 0.2, math.radians(15))
+    out = RCLBNMPCLaw(NMPCSettings(), DT).angular(ctx_for(path, path.pose_at(5.0) + np.array([0, 0.3, 0]),
+                                                          corridor=corridor))
+    assert out.v_mps == 0.0 and "outside the corridor" in out.stop_reason
+    lost = RCLBNMPCLaw(NMPCSettings(), DT).angular(ctx_for(path, path.pose_at(5.0), corridor=corridor,
+                                                           cov=np.diag([0.01, 0.01, 0.01])))
+    assert lost.v_mps == 0.0 and "uncertainty no longer fits" in lost.stop_reason
