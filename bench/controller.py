@@ -31,7 +31,9 @@ from common.messages import Experience, HyperDim, HyperMsg
 from common.scenario import TerrainPatch
 from services.controller.gauss_newton import gauss_newton
 from services.controller.local_model import LocalModels
+from services.controller.corridor import Corridor
 from services.controller.nmpc import HorizonProblem, LBNMPCLaw, NMPCSettings, build_problem
+from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
 from services.gp_store.db import BinPolicy, ExperienceDB
 from services.gp_store.fitting import fit_route
@@ -83,28 +85,35 @@ def build_memory(seed: int, workdir: str):
     return cl, path, hyper, windows, trial, len(A)
 
 
+LAWS = {"lb-nmpc": LBNMPCLaw, "mm-lb-nmpc": MMLBNMPCLaw,
+        "c-lb-nmpc": lambda st, dt, m: RCLBNMPCLaw(st, dt, m, alpha=0.0), "rc-lb-nmpc": RCLBNMPCLaw}
+
+
 def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, settings: NMPCSettings,
-                    keep_every: int):
+                    keep_every: int, algorithm: str = "lb-nmpc"):
     models = LocalModels(lambda v, s: windows[(v, int(math.floor(s / POLICY.v_bin_mps)))], lambda: hyper,
                          settings.horizon * DT, POLICY.v_bin_mps)
     times, sizes, kept, evals, statuses = [], [], [], [], []
+    law = LAWS[algorithm](settings, DT, models.model_for)
+    inner = law.angular
 
-    class Timed(LBNMPCLaw):
-        def angular(self, ctx):
-            # the warm start this step will use (the law shifts its previous solution by one period)
-            u0 = None if self._prev is None else np.concatenate([self._prev[1:], self._prev[-1:]])
-            t0 = time.perf_counter()
-            res = super().angular(ctx)
-            times.append((time.perf_counter() - t0) * 1e3)
-            sizes.append(models.last_n)
-            evals.append(res.info.get("evaluations", 0))
-            statuses.append(res.info.get("status", ""))
-            if u0 is not None and len(times) % keep_every == 0:
-                kept.append((ctx, models.model_for(ctx), u0))
-            return res
+    def timed(ctx):
+        # the warm start this step will use (the law shifts its previous solution by one period)
+        prev = getattr(law, "_prev", None)
+        u0 = None if prev is None or algorithm != "lb-nmpc" else np.concatenate([prev[1:], prev[-1:]])
+        t0 = time.perf_counter()
+        res = inner(ctx)
+        times.append((time.perf_counter() - t0) * 1e3)
+        sizes.append(models.last_n)
+        evals.append(res.info.get("evaluations", res.info.get("iterations", res.iterations)))
+        statuses.append(res.info.get("status", ""))
+        if u0 is not None and len(times) % keep_every == 0:
+            kept.append((ctx, models.model_for(ctx), u0))
+        return res
 
-    law = Timed(settings, DT, models.model_for)
-    cl.repeat(trial + 1, SPEEDS[1], law=law)
+    law.angular = timed
+    corridor = Corridor(cl.path.s, 0.3, math.radians(20.0)) if algorithm in ("c-lb-nmpc", "rc-lb-nmpc") else None
+    cl.repeat(trial + 1, SPEEDS[1], law=law, corridor=corridor)
     return np.array(times), np.array(sizes), kept, np.array(evals), statuses
 
 
@@ -185,8 +194,9 @@ def run_bench(args) -> dict:
         cl, path, hyper, windows, trials, n = build_memory(args.seed, work)
         log.info("route %.1f m, %d experiences retained from %d FL trials, hyperparameters in %.1f s (%.1f s)",
                  path.length_m, n, trials, hyper.fit_s, time.perf_counter() - t0)
-        times, sizes, kept, evals, statuses = time_controller(cl, hyper, windows, trials, settings, args.keep_every)
-        log.info("LB-NMPC: %d steps, window mean %.0f max %d", len(times), sizes.mean(), sizes.max())
+        times, sizes, kept, evals, statuses = time_controller(cl, hyper, windows, trials, settings, args.keep_every,
+                                                              args.algorithm)
+        log.info("%s: %d steps, window mean %.0f max %d", args.algorithm, len(times), sizes.mean(), sizes.max())
         result = {"algorithm": args.algorithm, "horizon": args.horizon, "window": round(float(sizes.mean()), 1),
                   "window_max": int(sizes.max()), "solve_ms_p50": round(float(np.percentile(times, 50)), 3),
                   "solve_ms_p99": round(float(np.percentile(times, 99)), 3),
@@ -194,6 +204,14 @@ def run_bench(args) -> dict:
                   "evaluations_p50": float(np.percentile(evals, 50)), "evaluations_p99": float(np.percentile(evals, 99)),
                   "not_converged": sum(s != "converged" for s in statuses), "max_evals": settings.max_evals,
                   "casadi_solve_ms_p50": None, "cost_gap": None}
+        if args.algorithm == "mm-lb-nmpc":
+            # thesis 6.4.3: the min-max extension costs 5 % more than LB-NMPC; the same repeat timed again
+            lb_times = time_controller(cl, hyper, windows, trials, settings, 10 ** 9, "lb-nmpc")[0]
+            result["lb_nmpc_solve_ms_p50"] = round(float(np.percentile(lb_times, 50)), 3)
+            result["mm_overhead"] = round(float(np.percentile(times, 50) / np.percentile(lb_times, 50) - 1.0), 3)
+        if args.algorithm != "lb-nmpc":
+            log.warning("the CasADi comparison covers the LB-NMPC problem only")
+            return result
         try:
             import casadi  # noqa: F401  (optional benchmark dependency)
         except ImportError:
@@ -224,7 +242,7 @@ def run_bench(args) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="lbc bench controller", description=__doc__.splitlines()[0])
-    parser.add_argument("--algorithm", default="lb-nmpc", choices=["lb-nmpc"])
+    parser.add_argument("--algorithm", default="lb-nmpc", choices=sorted(LAWS))
     parser.add_argument("--horizon", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep-every", type=int, default=20, help="compare every n-th problem with IPOPT")

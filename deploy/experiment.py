@@ -46,6 +46,9 @@ def services_of(sc: Scenario) -> tuple[str, ...]:
     return ROBOT_SERVICES + ("gp_store",) + (("scheduler",) if sc.scheduler.enabled else ())
 
 
+STOPPED_ENDS_TRIAL_S = 5.0     # robot time a controller may stay stopped before the runner ends the trial
+
+
 class ExperimentError(RuntimeError):
     pass
 
@@ -295,6 +298,7 @@ class Experiment:
         t_wall = time.monotonic()
         self.control("bridge", "start", "repeat", trial, speed, limit_s)
         finished, stopping, hint = False, False, 0
+        stopped_since, halt_reason = None, ""
         count = self.sc.trials.count
         last_progress = None
         while True:
@@ -330,11 +334,19 @@ class Experiment:
             elif kind == "status":
                 rec.status.append(msg)
                 finished = finished or msg.state == "finished"
+                # a controller that stays stopped (a safety stop: outside the corridor, too uncertain,
+                # localization lost) ends the trial with its reason rather than at the time limit
+                stopped_since = (stopped_since if stopped_since is not None else msg.stamp_s) \
+                    if msg.state == "stopped" else None
+                if stopped_since is not None and msg.stamp_s - stopped_since >= STOPPED_ENDS_TRIAL_S and not stopping:
+                    stopping = True
+                    halt_reason = f"controller stopped: {msg.reason}"
+                    self.control("bridge", "stop", "repeat", trial)
             elif kind == "loc":
                 rec.loc.append(msg)
             elif kind == "event" and msg.event == "ended" and msg.mode == "repeat":
                 rec.completed = finished
-                rec.end_reason = "end of route" if finished else msg.reason
+                rec.end_reason = "end of route" if finished else (halt_reason or msg.reason)
                 break
         rec.wall_s = time.monotonic() - t_wall
         return rec

@@ -169,3 +169,23 @@ def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit
     lost = RCLBNMPCLaw(NMPCSettings(), DT).angular(ctx_for(path, path.pose_at(5.0), corridor=corridor,
                                                            cov=np.diag([0.01, 0.01, 0.01])))
     assert lost.v_mps == 0.0 and "uncertainty no longer fits" in lost.stop_reason
+
+
+@pytest.mark.integration
+def test_rc_lb_nmpc_starting_outside_the_corridor_stops_and_says_why(tmp_path, scenario_file):
+    """Through the real services: a repeat that starts 0.4 m off a 0.3 m corridor never moves."""
+    import json
+    import os
+
+    from deploy.experiment import run_experiment
+    data = {"name": "rc_outside", "seed": 2, "robot": {"preset": "husky"},
+            "path": {"waypoints": [[0, 0], [8, 0], [12, 3]], "teach_speed_mps": 0.5},
+            "localization": {"source": "pose", "noise_m": 0.005},
+            "controller": {"algorithm": "rc-lb-nmpc"}, "constraints": {"lateral_m": 0.3, "heading_deg": 15.0},
+            "trials": {"count": 1, "speed": 0.5, "start_offset_m": 0.4}}
+    out = tmp_path / "out"
+    run_experiment(scenario_file(data), out, progress_stream=open(os.devnull, "w"))
+    trial = json.loads((out / "summary.json").read_text())["trials"][0]
+    assert not trial["completed"]
+    assert "outside the corridor" in trial["end_reason"], trial["end_reason"]
+    assert trial["distance_m"] < 0.5
