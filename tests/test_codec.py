@@ -52,6 +52,7 @@ EXAMPLES += [
     m.SpeedSchedule(stamp_s=2.0, path_id="p1", version=2, based_on_robot="r1", based_on_trial=1,
                     v_mps=[0.4, 0.7, 0.4], decisions=[0, 1, 0], notes=["trial 1"]),
     m.ScheduleUpdate(stamp_s=2.0, path_id="p1", robot="r1", trial=1),
+    m.CorridorUpdate(stamp_s=2.0, path_id="p1", from_m=10.0, to_m=20.0, left_m=0.2, right_m=-0.1, heading_rad=0.3),
     m.StoreStats(stamp_s=2.0, store="store1", db_path="/tmp/x.db",
                  paths=[m.PathStats(path_id="p1", retained=10, ingested=20, bins=5, hyper_version=1)]),
 ]

@@ -68,6 +68,11 @@ class NMPCSettings:
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
 
     def __post_init__(self):
+        for name in ("prior_std_base", "prior_std_per_mps", "process_std"):   # TOML gives lists
+            value = tuple(float(x) for x in getattr(self, name))
+            if len(value) != 3 or min(value) < 0:
+                raise ValueError(f"{name}: three non-negative values (along, lateral, heading)")
+            object.__setattr__(self, name, value)
         if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
                 self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw, self.q_terminal, self.lookahead_m) < 0:
             raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
