@@ -248,7 +248,6 @@ class RCLBNMPCLaw:
         H = J.T @ J + 1e-6 * np.eye(n)
         g = J.T @ r
         # variables: [d (2K), s_lat (K), s_head (K)]
-        nv = n + 2 * K
         # slack priced linearly (exact penalty) and quadratically (keeps ADMM well conditioned)
         P = sp.block_diag([sp.csc_matrix(np.triu(H)), sp.identity(2 * K) * s.slack_weight], format="csc")
         q = np.concatenate([g, np.full(2 * K, s.slack_weight)])
