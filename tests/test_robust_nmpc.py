@@ -154,7 +154,7 @@ def test_robust_law_keeps_the_3_sigma_region_inside_a_narrow_corridor_by_slowing
     p, _ = build_problem(ctx_for(path, pose, v=1.0, corridor=narrow), st, DT, None)
     lat = p.errors(plan.poses)[:, 1]
     sig = res.info["sigma_lat_max_m"]
-    assert np.max(np.abs(lat)) + 3 * sig <= 0.12 + 1e-3 or np.max(lat) <= 0.12
+    assert sig > 0.01 and np.max(np.abs(lat)) <= 0.12 - 0.5 * sig   # the mean keeps a margin inside
     assert res.v_mps < 1.0                            # slower than scheduled while this uncertain
     c = RCLBNMPCLaw(st, DT, alpha=0.0).angular(ctx_for(path, pose, v=1.0, corridor=narrow))
     assert c.v_mps > res.v_mps                        # the overconfident variant does not slow as much
