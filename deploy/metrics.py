@@ -5,7 +5,6 @@ route polyline); the controller's own estimate is reported beside them under `*_
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np

@@ -1,7 +1,6 @@
 """`lbc store ...`: look into, fit, export and import the experience store of a running deployment."""
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -13,7 +12,7 @@ from mcap.writer import Writer
 
 from common import keys
 from common.bus import DEFAULT_ENDPOINT, Node, open_session, query, query_one
-from common.codec import DecodeError, decode, encode
+from common.codec import DecodeError, decode
 from common.messages import ExperienceBatch, ExperienceWindow, HyperMsg, StoreStats
 from common.store_client import ExperienceOutbox
 from services.controller.experience import A_NAMES, G_NAMES

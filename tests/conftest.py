@@ -8,7 +8,6 @@ from pathlib import Path
 import pytest
 
 from common.bus import open_session
-from common.config import dump_toml
 from common.scenario import parse_scenario
 from deploy.configs import service_configs, write_service_configs
 from deploy.experiment import Experiment, Progress, services_of

@@ -3,7 +3,6 @@ Jacobians, and the thesis's illustrative example (eq. 5.22-5.25)."""
 import math
 
 import numpy as np
-import pytest
 
 from common.gp import GaussianProcess, SEHyper, fit_hyperparameters
 from common.path import Path

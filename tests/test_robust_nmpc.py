@@ -13,7 +13,8 @@ from services.controller.gauss_newton import gauss_newton
 from services.controller.laws import StepContext
 from services.controller.nmpc import NMPCSettings, build_problem
 from services.controller.robust_nmpc import SIGNS, MMLBNMPCLaw, RCLBNMPCLaw
-from services.controller.uncertainty import lateral_sigma_speed_jacobian, propagate, route_sigmas, sigma_point_step
+from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
+                                             route_sigmas, sigma_point_step, variance_speed_derivatives)
 
 DT = 0.1
 
@@ -75,21 +76,36 @@ def test_lateral_sigma_speed_jacobian_matches_finite_differences_of_the_propagat
     p, _ = build_problem(ctx, NMPCSettings(), DT, None)
     K = p.K
     direction = np.arctan2(p.sinD[1:], p.cD[1:])
-    G, V = np.zeros((K, 3)), np.tile([1e-6, 4e-6, 4e-4], (K, 1))
     S0 = np.diag([1e-4, 1e-4, 1e-3])
+    fixed = lambda A: np.tile([1e-6, 4e-6, 4e-4], (len(A), 1))
+    # a variance growing with the speed commanded now and with the one before (as a GP's can)
+    prior = DisturbanceVariance(None, PriorStd(base=(0.001, 0.002, 0.01), per_mps=(0.004, 0.008, 0.025)),
+                                (0.0, 0.0, 0.0))
+    both = lambda A: prior(A) * (1.0 + 0.5 * A[:, 7:8] ** 2)
 
-    def sig_lat(v):
+    def inputs(v):
+        A = np.zeros((K, 9))
+        A[:, 5], A[:, 7] = v, np.concatenate([[0.4], v[:-1]])
+        return A
+
+    def sig_lat(v, var):
         X = p.rollout(p.w_ref, False, v=v)[0]
-        return route_sigmas(propagate(X, None, G, V, v, p.w_ref, S0, DT, 2.0), direction)[:, 1]
+        return route_sigmas(propagate(X, None, np.zeros((K, 3)), var(inputs(v)), v, p.w_ref, S0, DT, 2.0),
+                            direction)[:, 1]
 
-    v = p.v.copy()
-    X = p.rollout(p.w_ref, False, v=v)[0]
-    Sig = propagate(X, None, G, V, v, p.w_ref, S0, DT, 2.0)
-    ours = lateral_sigma_speed_jacobian(X, Sig, v, direction, route_sigmas(Sig, direction)[:, 1], DT)
-    h = 1e-5
-    fd = np.column_stack([(sig_lat(v + h * e) - sig_lat(v - h * e)) / (2 * h) for e in np.eye(K)])
-    assert np.all(ours >= -1e-9)                       # faster never makes the lateral spread smaller
-    np.testing.assert_allclose(ours, fd, rtol=0.15, atol=2e-4)
+    for var in (fixed, prior, both):
+        v = p.v.copy()
+        X = p.rollout(p.w_ref, False, v=v)[0]
+        Sig = propagate(X, None, np.zeros((K, 3)), var(inputs(v)), v, p.w_ref, S0, DT, 2.0)
+        dv, dvp = variance_speed_derivatives(var, inputs(v), h=1e-6)
+        ours = lateral_sigma_speed_jacobian(X, Sig, v, direction, route_sigmas(Sig, direction)[:, 1], DT, dv, dvp)
+        h = 1e-5
+        fd = np.column_stack([(sig_lat(v + h * e, var) - sig_lat(v - h * e, var)) / (2 * h) for e in np.eye(K)])
+        assert np.all(ours >= -1e-9)                   # faster never makes the lateral spread smaller
+        np.testing.assert_allclose(ours, fd, rtol=0.15, atol=2e-4)
+        if var is not fixed:                            # and the speed-dependent variance is a real share
+            kin = lateral_sigma_speed_jacobian(X, Sig, v, direction, route_sigmas(Sig, direction)[:, 1], DT)
+            assert np.abs(fd - kin).max() > 10 * np.abs(fd - ours).max()
 
 
 def no_uncertainty(**kw):

@@ -117,9 +117,23 @@ class HorizonProblem:
         direction = self.D[:, 2] if tangent is None else tangent
         self.cD = np.cos(direction)
         self.sinD = np.sin(direction)
+        self._memo: list[tuple] = []   # the last rollouts: a solver's final iterate is usually among them
 
     def rollout(self, w: np.ndarray, with_jac: bool, v: np.ndarray | None = None, with_v_jac: bool = False,
                 a_out: np.ndarray | None = None):
+        key = (np.asarray(w, dtype=float).tobytes(), None if v is None else np.asarray(v, dtype=float).tobytes())
+        for k, jac, vjac, out, A in self._memo:
+            if k == key and (jac or not with_jac) and (vjac or not with_v_jac):
+                if a_out is not None:
+                    a_out[:] = A
+                X, S = out[0], out[1] if with_jac else None
+                return (X, S, out[2]) if with_v_jac else (X, S)
+        A = np.empty((self.K, 9)) if a_out is None else a_out
+        out = self._rollout(w, with_jac, v, with_v_jac, A)
+        self._memo = [(key, with_jac, with_v_jac, out if with_v_jac else (*out, None), A.copy())] + self._memo[:1]
+        return out
+
+    def _rollout(self, w: np.ndarray, with_jac: bool, v: np.ndarray | None, with_v_jac: bool, a_out: np.ndarray):
         """Predicted poses (K+1, 3) and, with_jac, their sensitivities dX/dw (K+1, 3, K); with_v_jac also
         dX/dv (the constrained laws optimize the speeds too; `v` overrides the profile's). `a_out`
         (K, 9) receives the disturbance inputs a_j (for the GP variance along the horizon).
@@ -130,10 +144,11 @@ class HorizonProblem:
         K, dt = self.K, self.dt
         X = np.empty((K + 1, 3))
         X[0] = self.x0
-        S = np.zeros((K + 1, 3, K)) if with_jac else None
-        Sv = np.zeros((K + 1, 3, K)) if with_v_jac else None
+        # dX/dw and dX/dv side by side in one array (columns: w's, then v's): one product per step for both
+        n_w = K if with_jac else 0
+        SS = np.zeros((K + 1, 3, n_w + (K if with_v_jac else 0))) if (with_jac or with_v_jac) else None
         model = self.model
-        a = np.empty(9)
+        a = np.zeros(9)
         xj, yj, thj = (float(v) for v in self.x0)
         xp = yp = thp = cp = sp = 0.0
         D, sD, cD, sinD = self.D, self.sD, self.cD, self.sinD
@@ -161,10 +176,9 @@ class HorizonProblem:
                 gx, gy, gth = float(g[0]), float(g[1]), float(g[2])
             else:
                 gx = gy = gth = 0.0
-            if a_out is not None:
-                if model is None:   # the inputs still matter to a prior that depends on the commands
-                    a[5], a[6] = v, wj
-                a_out[j] = a
+            if model is None:   # the inputs still matter to a prior that depends on the commands
+                a[5], a[6] = v, wj
+            a_out[j] = a
             xn = xj + v * dt * c + c * gx - s * gy
             yn = yj + v * dt * s + s * gx + c * gy
             thn = thj + wj * dt + gth
@@ -190,18 +204,24 @@ class HorizonProblem:
                         Ap = np.array([[-cp / dt, -sp / dt, (-sp * (xj - xp) + cp * (yj - yp)) / dt],
                                        [0.0, 0.0, -1.0 / dt]])
                         Cp = RDg[:, 3:5] @ Ap
-                for Sx, bj, col_prev in ((S, b, 8), (Sv, bv, 7)):
-                    if Sx is None:
-                        continue
-                    Sn = Aj @ Sx[j]
-                    Sn[:, j] += bj
+                Sn = Aj @ SS[j]
+                if Cp is not None:
+                    Sn += Cp @ SS[j - 1]
+                if with_jac:
+                    Sn[:, j] += b
                     if Cp is not None:
-                        Sn += Cp @ Sx[j - 1]
-                        Sn[:, j - 1] += RDg[:, col_prev]
-                    Sx[j + 1] = Sn
+                        Sn[:, j - 1] += RDg[:, 8]
+                if with_v_jac:
+                    Sn[:, n_w + j] += bv
+                    if Cp is not None:
+                        Sn[:, n_w + j - 1] += RDg[:, 7]
+                SS[j + 1] = Sn
             xp, yp, thp, cp, sp = xj, yj, thj, c, s
             xj, yj, thj = xn, yn, thn
-        return (X, S, Sv) if with_v_jac else (X, S)
+        S = SS[:, :, :K] if with_jac else None
+        if not with_v_jac:
+            return X, S
+        return X, S, SS[:, :, n_w:]
 
     def errors(self, X: np.ndarray) -> np.ndarray:
         """(K, 3) errors of x_1..x_K in the frames of their desired poses (along, lateral, heading)."""

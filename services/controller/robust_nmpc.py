@@ -15,8 +15,9 @@ C-/RC-LB-NMPC (eq. 7.2-7.6): linear and angular speeds are both optimized; the c
 errors of the mean sequence and the deviation from the desired inputs (scheduled speed, route turn
 rate); the lateral and heading errors of the mean must stay inside the corridor tightened by
 alpha * sigma (eq. 7.4; alpha = 0 is C-LB-NMPC); speeds and rates stay inside the actuator limits
-(eq. 7.5). Solved as SQP: each iteration linearizes the rollout (analytic sensitivities for v and w)
-and the lateral sigma's dependence on speed, and solves the QP with OSQP; violating a tightened limit
+(eq. 7.5). Solved as SQP: the covariance is propagated once per step around the warm start, and each
+iteration linearizes the rollout (analytic sensitivities for v and w) and the lateral sigma's dependence
+on speed and solves the QP with one warm-started OSQP workspace (sqp_qp.py); violating a tightened limit
 is possible only through a slack with a heavy L1 price, so the QP is always feasible and the law says
 when it had to use it. When even the first predicted step's 3-sigma region does not fit inside the
 corridor, or the robot is already outside it, the law stops the robot and says why.
@@ -27,14 +28,13 @@ import math
 from typing import Callable
 
 import numpy as np
-import osqp
-import scipy.sparse as sp
 
 from services.controller.gauss_newton import gauss_newton
 from services.controller.laws import LawResult, StepContext
 from services.controller.nmpc import HorizonProblem, NMPCSettings, Plan, build_problem
+from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
-                                             route_sigmas, sigma_point_step)
+                                             route_sigmas, sigma_point_step, variance_speed_derivatives)
 
 SIGNS = np.array([[sx, sy, sh] for sx in (1, -1) for sy in (1, -1) for sh in (1, -1)], dtype=float)  # eq. 6.5
 
@@ -89,7 +89,7 @@ class MMLBNMPCLaw:
         u0 = np.concatenate([self._prev[1:], self._prev[-1:]]) if self._prev is not None else problem.w_ref.copy()
         u0 = np.clip(u0, -w_limit, w_limit)
         A = np.empty((problem.K, 9))
-        X0, _ = problem.rollout(u0, with_jac=False, a_out=A)
+        X0, _ = problem.rollout(u0, with_jac=True, a_out=A)     # Gauss-Newton's first residual reuses it
         Sigma0 = initial_covariance(ctx, problem, gp, var, s, self.dt)
         _, sig = horizon_sigmas(problem, X0, A, problem.v, u0, gp, var, Sigma0, s, self.dt)
         bound = s.mm_sigmas * sig                                   # (K, 3)
@@ -126,10 +126,11 @@ class RCLBNMPCLaw:
         self.alpha = settings.alpha if alpha is None else alpha
         self.name = "rc-lb-nmpc" if self.alpha > 0 else "c-lb-nmpc"
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
+        self._qp: CorridorQP | None = None
         self.last_plan: Plan | None = None
 
     # --- residuals of eq. 7.2 with both inputs -------------------------------------------------------
-    def _residual(self, p: HorizonProblem, v: np.ndarray, w: np.ndarray, A: np.ndarray):
+    def _residual(self, p: HorizonProblem, v: np.ndarray, w: np.ndarray, A: np.ndarray | None):
         s = self.settings
         K = p.K
         X, Sw, Sv = p.rollout(w, with_jac=True, v=v, with_v_jac=True, a_out=A)
@@ -181,36 +182,56 @@ class RCLBNMPCLaw:
             v, w = p.v.copy(), p.w_ref.copy()
         alpha = self.alpha
         w_lim_of = np.vectorize(lambda vj: ctx.w_limit_at(max(vj, s.v_min_mps)))
+        direction = np.arctan2(p.sinD[1:], p.cD[1:])
+        v_start = v
+        # the covariance is propagated once per step, around the warm start; within the solve the lateral
+        # sigma follows the speeds to first order (it moves little otherwise, and this keeps the per-step
+        # cost at one sigma-point pass and one GP variance batch)
+        sig_start = np.zeros((K, 3))
+        dsig_v = np.zeros((K, K))
 
-        def evaluate(v, w):
-            """Everything one SQP iterate needs, and its merit: cost + slack price of the violations."""
-            A = np.empty((K, 9))
-            X, E, dE, r, J = self._residual(p, v, w, A)
-            if alpha > 0:
-                Sig, sig = horizon_sigmas(p, X, A, v, w, gp, var, Sigma0, s, dt)
-            else:
-                Sig, sig = None, np.zeros((K, 3))
+        def score(it: dict) -> dict:
+            """The iterate's merit: cost + slack price of the tightened-corridor violations."""
+            E, sig = it["E"], sig_start.copy()
+            sig[:, 1] = np.maximum(sig_start[:, 1] + dsig_v @ (it["v"] - v_start), 0.0)
             t = alpha * sig
             viol = (np.maximum(E[:, 1] + t[:, 1] - hi_lat, 0) + np.maximum(lo_lat - E[:, 1] + t[:, 1], 0)
                     + np.maximum(np.abs(E[:, 2]) + t[:, 2] - head_lim, 0))
-            merit = 0.5 * float(r @ r) + s.slack_weight * float(viol.sum())
-            return dict(v=v, w=w, X=X, E=E, dE=dE, r=r, J=J, Sig=Sig, sig=sig, merit=merit, viol=float(viol.max()))
+            it.update(sig=sig, merit=0.5 * float(it["r"] @ it["r"]) + s.slack_weight * float(viol.sum()),
+                      viol=float(viol.max()))
+            return it
 
-        cur = evaluate(v, w)
-        sig0 = cur["sig"][0]
+        def evaluate(v, w, A=None):
+            """Everything one SQP iterate needs."""
+            X, E, dE, r, J = self._residual(p, v, w, A)
+            return score(dict(v=v, w=w, X=X, E=E, dE=dE, r=r, J=J))
+
+        A = np.empty((K, 9))
+        cur = evaluate(v, w, A)
+        if alpha > 0:
+            Sig, sig_start = horizon_sigmas(p, cur["X"], A, v, w, gp, var, Sigma0, s, dt)
+            dvar_dv, dvar_dvprev = variance_speed_derivatives(var, A)
+            dsig_v = lateral_sigma_speed_jacobian(cur["X"], Sig, v, direction, sig_start[:, 1], dt, dvar_dv,
+                                                  dvar_dvprev)
+            cur = score(cur)
+        sig0 = sig_start[0]
         if alpha > 0 and min(hi_lat[0] - lo_lat[0] - 2 * alpha * sig0[1], head_lim[0] - alpha * sig0[2]) <= 0:
             return LawResult(0.0, 0, cur["X"][1:], {"learned": gp is not None, "sigma_lat_max_m": float(sig0[1])},
                              v_mps=0.0, stop_reason=f"predicted uncertainty no longer fits the corridor "
                                                     f"({alpha:g} sigma: {alpha * sig0[1]:.3f} m lateral, "
                                                     f"{math.degrees(alpha * sig0[2]):.1f} deg heading): stopped")
+        if self._qp is None or self._qp.K != K:
+            self._qp = CorridorQP(K, s.slack_weight)
+        trust_v, trust_w = 0.5, 1.0
         iters, status = 0, "budget"
         for it in range(s.sqp_iter):
             iters = it + 1
             v, w = cur["v"], cur["w"]
-            dsig_v = (lateral_sigma_speed_jacobian(cur["X"], cur["Sig"], v, np.arctan2(p.sinD[1:], p.cD[1:]),
-                                                   cur["sig"][:, 1], dt) if alpha > 0 else np.zeros((K, K)))
-            dx, _ = self._qp(cur["r"], cur["J"], cur["E"], cur["dE"], cur["sig"], dsig_v, alpha, lo_lat, hi_lat,
-                             head_lim, v, w, v_max, w_lim_of(v))
+            w_lim = w_lim_of(v)
+            lo_d = np.concatenate([np.maximum(s.v_min_mps - v, -trust_v), np.maximum(-w_lim - w, -trust_w)])
+            hi_d = np.concatenate([np.minimum(v_max - v, trust_v), np.minimum(w_lim - w, trust_w)])
+            dx, _ = self._qp.solve(cur["r"], cur["J"], cur["E"], cur["dE"], alpha * cur["sig"], alpha * dsig_v,
+                                   lo_lat, hi_lat, head_lim, lo_d, np.maximum(hi_d, lo_d))
             if dx is None:
                 status = "qp-failed"
                 break
@@ -238,50 +259,3 @@ class RCLBNMPCLaw:
                           "learned": gp is not None, "violation": slack_used,
                           "sigma_lat_max_m": float(sig[:, 1].max()), "sigma_head_max_rad": float(sig[:, 2].max())},
                          v_mps=float(v[0]))
-
-    def _qp(self, r, J, E, dE, sig, dsig_v, alpha, lo_lat, hi_lat, head_lim, v, w, v_max, w_lim):
-        """One SQP step: min 1/2 |r + J d|^2 + rho 1's, linearized tightened corridor (with slack s >= 0),
-        bounds on v + dv and w + dw, and a trust region. Returns (d, largest slack used) or (None, 0)."""
-        s = self.settings
-        K = len(v)
-        n = 2 * K
-        H = J.T @ J + 1e-6 * np.eye(n)
-        g = J.T @ r
-        # variables: [d (2K), s_lat (K), s_head (K)]
-        # slack priced linearly (exact penalty) and quadratically (keeps ADMM well conditioned)
-        P = sp.block_diag([sp.csc_matrix(np.triu(H)), sp.identity(2 * K) * s.slack_weight], format="csc")
-        q = np.concatenate([g, np.full(2 * K, s.slack_weight)])
-        Jlat = dE[:, 1, :]
-        Jhead = dE[:, 2, :]
-        tight = alpha * sig
-        dtight = np.zeros((K, n))
-        dtight[:, :K] = alpha * dsig_v
-        I = sp.identity(K, format="csc")
-        Z = sp.csc_matrix((K, K))
-        inf = np.full(K, np.inf)
-        rows = [
-            # lat + tight + (Jlat + dtight) d - s_lat <= hi
-            (sp.hstack([sp.csc_matrix(Jlat + dtight), -I, Z]), -inf, hi_lat - E[:, 1] - tight[:, 1]),
-            # lat - tight + (Jlat - dtight) d + s_lat >= lo
-            (sp.hstack([sp.csc_matrix(Jlat - dtight), I, Z]), lo_lat - E[:, 1] + tight[:, 1], inf),
-            (sp.hstack([sp.csc_matrix(Jhead), Z, -I]), -inf, head_lim - E[:, 2] - tight[:, 2]),
-            (sp.hstack([sp.csc_matrix(Jhead), Z, I]), -head_lim - E[:, 2] + tight[:, 2], inf),
-        ]
-        trust_v, trust_w = 0.5, 1.0
-        lo_d = np.concatenate([np.maximum(s.v_min_mps - v, -trust_v), np.maximum(-w_lim - w, -trust_w)])
-        hi_d = np.concatenate([np.minimum(v_max - v, trust_v), np.minimum(w_lim - w, trust_w)])
-        hi_d = np.maximum(hi_d, lo_d)
-        rows.append((sp.hstack([sp.identity(n), sp.csc_matrix((n, 2 * K))]), lo_d, hi_d))
-        rows.append((sp.hstack([sp.csc_matrix((2 * K, n)), sp.identity(2 * K)]), np.zeros(2 * K), np.full(2 * K, np.inf)))
-        Acon = sp.vstack([m for m, _, _ in rows], format="csc")
-        lo = np.concatenate([l for _, l, _ in rows])
-        hi = np.concatenate([u for _, _, u in rows])
-        solver = osqp.OSQP()
-        solver.setup(P, q, Acon, lo, hi, verbose=False, eps_abs=1e-5, eps_rel=1e-5, max_iter=2000, polishing=True)
-        res = solver.solve(raise_error=False)
-        # solved, solved inaccurate, or out of ADMM iterations: the point is still a usable direction,
-        # the merit test of the caller decides whether it helps
-        if res.x is None or not np.all(np.isfinite(res.x)) or res.info.status_val not in (1, 2, -2, 7):
-            return None, 0.0
-        x = res.x
-        return x[:n], float(max(np.max(x[n:], initial=0.0), 0.0))

@@ -73,12 +73,22 @@ def sigma_point_step(x: np.ndarray, Sigma: np.ndarray, mu: np.ndarray, var_g: np
 
 
 def _chol3(Sigma: np.ndarray) -> np.ndarray:
-    """Cholesky of a 3x3 covariance that may be singular (a perfectly known heading, say)."""
-    try:
-        return np.linalg.cholesky(Sigma + 1e-12 * np.eye(3))
-    except np.linalg.LinAlgError:
-        vals, vecs = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
-        return vecs * np.sqrt(np.maximum(vals, 0.0))
+    """Cholesky of a 3x3 covariance, written out (np.linalg's call overhead is most of its cost at this
+    size); one that is singular (a perfectly known heading, say) goes through its eigendecomposition."""
+    a = Sigma.tolist()
+    l11 = a[0][0] + 1e-12
+    if l11 > 0:
+        l11 = math.sqrt(l11)
+        l21, l31 = a[1][0] / l11, a[2][0] / l11
+        d2 = a[1][1] + 1e-12 - l21 * l21
+        if d2 > 0:
+            l22 = math.sqrt(d2)
+            l32 = (a[2][1] - l31 * l21) / l22
+            d3 = a[2][2] + 1e-12 - l31 * l31 - l32 * l32
+            if d3 > 0:
+                return np.array([[l11, 0.0, 0.0], [l21, l22, 0.0], [l31, l32, math.sqrt(d3)]])
+    vals, vecs = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
+    return vecs * np.sqrt(np.maximum(vals, 0.0))
 
 
 def propagate(X: np.ndarray, A: np.ndarray, G: np.ndarray, var_g: np.ndarray, v: np.ndarray, w: np.ndarray,
@@ -104,10 +114,14 @@ def route_sigmas(Sigmas: np.ndarray, direction: np.ndarray) -> np.ndarray:
 
 
 def lateral_sigma_speed_jacobian(X: np.ndarray, Sigmas: np.ndarray, v: np.ndarray, direction: np.ndarray,
-                                 sig_lat: np.ndarray, dt: float) -> np.ndarray:
+                                 sig_lat: np.ndarray, dt: float, dvar_dv: np.ndarray | None = None,
+                                 dvar_dvprev: np.ndarray | None = None) -> np.ndarray:
     """d sigma_lat,j / d v_i (K, K), to first order (the linearized propagation Sigma' = A Sigma A' + Q with
-    A = df/dx): faster driving turns heading uncertainty into lateral uncertainty sooner. The constrained
-    law needs this to know that slowing down shrinks the tightened corridor margin."""
+    A = df/dx and Q = R(theta) diag(var_g) R(theta)'). Two effects: faster driving turns heading
+    uncertainty into lateral uncertainty sooner (through A), and the disturbance itself is more uncertain
+    at speeds with little experience or under a prior growing with speed (`dvar_dv` (K, 3): d var_g,j /
+    d v_j; `dvar_dvprev`: d var_g,j / d v_{j-1}, the previous command being a GP input too). The
+    constrained law needs this to know that slowing down shrinks the tightened corridor margin."""
     K = len(v)
     out = np.zeros((K, K))
     n = np.column_stack([-np.sin(direction), np.cos(direction), np.zeros(K)])   # lateral direction
@@ -116,14 +130,36 @@ def lateral_sigma_speed_jacobian(X: np.ndarray, Sigmas: np.ndarray, v: np.ndarra
     As[:, 0, 0] = As[:, 1, 1] = As[:, 2, 2] = 1.0
     As[:, 0, 2] = -v * dt * np.sin(th)
     As[:, 1, 2] = v * dt * np.cos(th)
-    for i in range(K):
+
+    def dQ(j: int, dvar: np.ndarray) -> np.ndarray:
+        c, s = math.cos(th[j]), math.sin(th[j])
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return (R * dvar) @ R.T
+
+    # dS[i] = d Sigma_{j+1} / d v_i for all i <= j, carried forward together: one batched product per j
+    dS = np.zeros((K, 3, 3))
+    for j in range(K):
+        if j > 0:
+            dS[:j] = As[j] @ dS[:j] @ As[j].T
+            if dvar_dvprev is not None:
+                dS[j - 1] += dQ(j, dvar_dvprev[j])
         dA = np.zeros((3, 3))
-        dA[0, 2], dA[1, 2] = -dt * math.sin(th[i]), dt * math.cos(th[i])
-        dS = dA @ Sigmas[i] @ As[i].T
-        dS = dS + dS.T                                     # d Sigma_{i+1} / d v_i
-        for j in range(i, K):
-            if j > i:
-                dS = As[j] @ dS @ As[j].T
-            if sig_lat[j] > 1e-9:
-                out[j, i] = float(n[j] @ dS @ n[j]) / (2.0 * sig_lat[j])
+        dA[0, 2], dA[1, 2] = -dt * math.sin(th[j]), dt * math.cos(th[j])
+        d = dA @ Sigmas[j] @ As[j].T
+        dS[j] = d + d.T
+        if dvar_dv is not None:
+            dS[j] += dQ(j, dvar_dv[j])
+        if sig_lat[j] > 1e-9:
+            out[j, :j + 1] = np.einsum("a,iab,b->i", n[j], dS[:j + 1], n[j]) / (2.0 * sig_lat[j])
     return out
+
+
+def variance_speed_derivatives(var, A: np.ndarray, h: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """d var_g / d v_j and d var_g / d v_{j-1} (each (K, 3)) of a variance model `var(A)` along the
+    horizon's inputs A (K, 9; column 5 is v_j, column 7 is v_{j-1}), by one batched forward difference."""
+    K = len(A)
+    B = np.vstack([A, A, A])
+    B[K:2 * K, 5] += h
+    B[2 * K:, 7] += h
+    V = var(B)
+    return (V[K:2 * K] - V[:K]) / h, (V[2 * K:] - V[:K]) / h
