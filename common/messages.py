@@ -110,6 +110,7 @@ ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopped", "
 @dataclass(frozen=True, kw_only=True)
 class ControllerStatus(Message):
     """One per control step: what the controller saw, decided and how long it took."""
+    SCHEMA_VERSION = 2
     stamp_s: float
     tick: int
     trial: int
@@ -135,6 +136,11 @@ class ControllerStatus(Message):
     pred_x_m: list[float]             # predicted poses over the horizon (NMPC), in the route's frame
     pred_y_m: list[float]
     pred_theta_rad: list[float]
+    # v2: the predicted uncertainty (MM/C/RC-LB-NMPC; 0 for other laws): the largest 1-sigma lateral and
+    # heading spread over the horizon, and how the solver ended ("converged", "budget", "qp-failed", ...)
+    sigma_lat_m: float
+    sigma_head_rad: float
+    solver_status: str
 
 
 @dataclass(frozen=True, kw_only=True)

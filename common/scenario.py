@@ -138,8 +138,10 @@ class NMPCSection:
     v_min_mps: float = 0.05
     slack_weight: float = 2000.0
     sqp_iter: int = 4
-    prior_std_base: tuple[float, float, float] = (0.002, 0.004, 0.012)
-    prior_std_per_mps: tuple[float, float, float] = (0.004, 0.008, 0.025)
+    prior_std_base: tuple[float, float, float] = (0.001, 0.002, 0.003)
+    prior_std_per_mps: tuple[float, float, float] = (0.004, 0.008, 0.008)
+    prior_std_per_radps: tuple[float, float, float] = (0.002, 0.004, 0.015)
+    min_band_fraction: float = 0.2
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
 
 

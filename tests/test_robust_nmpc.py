@@ -109,7 +109,8 @@ def test_lateral_sigma_speed_jacobian_matches_finite_differences_of_the_propagat
 
 
 def no_uncertainty(**kw):
-    return NMPCSettings(prior_std_base=(0, 0, 0), prior_std_per_mps=(0, 0, 0), process_std=(0, 0, 0), **kw)
+    return NMPCSettings(prior_std_base=(0, 0, 0), prior_std_per_mps=(0, 0, 0), prior_std_per_radps=(0, 0, 0),
+                        process_std=(0, 0, 0), **kw)
 
 
 def test_min_max_without_uncertainty_is_lb_nmpc():

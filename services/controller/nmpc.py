@@ -63,12 +63,19 @@ class NMPCSettings:
     v_min_mps: float = 0.05   # RC/C: the slowest the law may choose while moving
     slack_weight: float = 2000.0    # C/RC: L1 price of violating a (tightened) corridor limit
     sqp_iter: int = 4         # C/RC: SQP iterations per step at most
-    prior_std_base: tuple[float, float, float] = (0.002, 0.004, 0.012)      # per period, body frame
-    prior_std_per_mps: tuple[float, float, float] = (0.004, 0.008, 0.025)
+    # the a-priori std of the unicycle model's error per period (body frame, before any experience):
+    # base + per_mps |v| + per_radps |w| (slip and lag grow with speed and with turning)
+    prior_std_base: tuple[float, float, float] = (0.001, 0.002, 0.003)
+    prior_std_per_mps: tuple[float, float, float] = (0.004, 0.008, 0.008)
+    prior_std_per_radps: tuple[float, float, float] = (0.002, 0.004, 0.015)
+    # C/RC beyond the first step: the tightened band keeps at least this fraction of the corridor (the
+    # open-loop covariance ignores the localization updates still to come; without a floor the far end of
+    # the horizon is infeasible whenever uncertainty is high and the slack drives the solution)
+    min_band_fraction: float = 0.2
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
 
     def __post_init__(self):
-        for name in ("prior_std_base", "prior_std_per_mps", "process_std"):   # TOML gives lists
+        for name in ("prior_std_base", "prior_std_per_mps", "prior_std_per_radps", "process_std"):   # TOML gives lists
             value = tuple(float(x) for x in getattr(self, name))
             if len(value) != 3 or min(value) < 0:
                 raise ValueError(f"{name}: three non-negative values (along, lateral, heading)")
@@ -78,6 +85,8 @@ class NMPCSettings:
             raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
         if self.r_w + self.r_dw <= 0:
             raise ValueError("r_w or r_dw must be > 0 (eq. 5.3 needs R positive definite)")
+        if not 0.0 <= self.min_band_fraction < 1.0:
+            raise ValueError("min_band_fraction must be in [0, 1)")
 
 
 @dataclass

@@ -241,6 +241,7 @@ class ControllerService(Service):
         pred = d.predicted if d.predicted is not None else np.zeros((0, 3))
         self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
                                                       v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
+        info = d.info or {}
         status = ControllerStatus(
             stamp_s=now_s, tick=tick, trial=self.trial, algorithm=self.cfg.algorithm, state=d.state,
             reason=d.reason, path_id=self.path_id, vertex=d.vertex, distance_m=d.distance_m,
@@ -250,8 +251,10 @@ class ControllerService(Service):
             experiences_sent=self.outbox.acked + self.outbox.pending if self.outbox else 0,
             experiences_pending=self.outbox.pending if self.outbox else 0,
             window_experiences=window_n, hyper_version=hyper_version,
-            w_ff_radps=float((d.info or {}).get("w_ff", 0.0)), pred_x_m=pred[:, 0].tolist(),
-            pred_y_m=pred[:, 1].tolist(), pred_theta_rad=pred[:, 2].tolist())
+            w_ff_radps=float(info.get("w_ff", 0.0)), pred_x_m=pred[:, 0].tolist(),
+            pred_y_m=pred[:, 1].tolist(), pred_theta_rad=pred[:, 2].tolist(),
+            sigma_lat_m=float(info.get("sigma_lat_max_m", 0.0)), sigma_head_rad=float(info.get("sigma_head_max_rad", 0.0)),
+            solver_status=str(info.get("status", "")))
         # the command must arrive; a status may be dropped under congestion rather than stall the loop
         self.node.publish(self.k_status, status, droppable=True)
 

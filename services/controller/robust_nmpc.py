@@ -40,7 +40,8 @@ SIGNS = np.array([[sx, sy, sh] for sx in (1, -1) for sy in (1, -1) for sh in (1,
 
 
 def _variance_model(gp, s: NMPCSettings) -> DisturbanceVariance:
-    return DisturbanceVariance(gp, PriorStd(base=s.prior_std_base, per_mps=s.prior_std_per_mps), s.process_std)
+    return DisturbanceVariance(gp, PriorStd(base=s.prior_std_base, per_mps=s.prior_std_per_mps,
+                                            per_radps=s.prior_std_per_radps), s.process_std)
 
 
 def _disturbances(gp, A: np.ndarray, var: DisturbanceVariance) -> tuple[np.ndarray, np.ndarray]:
@@ -190,11 +191,21 @@ class RCLBNMPCLaw:
         sig_start = np.zeros((K, 3))
         dsig_v = np.zeros((K, K))
 
+        # beyond the first step the band never closes below min_band_fraction of the corridor
+        f = 1.0 - s.min_band_fraction
+        cap = np.column_stack([np.full(K, np.inf), f * 0.5 * (hi_lat - lo_lat), f * head_lim])
+        cap[0] = np.inf
+
+        def tighten(sig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """alpha * sigma, capped; and whether each lateral tightening still follows sigma."""
+            t = alpha * sig
+            return np.minimum(t, cap), t[:, 1] < cap[:, 1]
+
         def score(it: dict) -> dict:
             """The iterate's merit: cost + slack price of the tightened-corridor violations."""
             E, sig = it["E"], sig_start.copy()
             sig[:, 1] = np.maximum(sig_start[:, 1] + dsig_v @ (it["v"] - v_start), 0.0)
-            t = alpha * sig
+            t, _ = tighten(sig)
             viol = (np.maximum(E[:, 1] + t[:, 1] - hi_lat, 0) + np.maximum(lo_lat - E[:, 1] + t[:, 1], 0)
                     + np.maximum(np.abs(E[:, 2]) + t[:, 2] - head_lim, 0))
             it.update(sig=sig, merit=0.5 * float(it["r"] @ it["r"]) + s.slack_weight * float(viol.sum()),
@@ -230,7 +241,8 @@ class RCLBNMPCLaw:
             w_lim = w_lim_of(v)
             lo_d = np.concatenate([np.maximum(s.v_min_mps - v, -trust_v), np.maximum(-w_lim - w, -trust_w)])
             hi_d = np.concatenate([np.minimum(v_max - v, trust_v), np.minimum(w_lim - w, trust_w)])
-            dx, _ = self._qp.solve(cur["r"], cur["J"], cur["E"], cur["dE"], alpha * cur["sig"], alpha * dsig_v,
+            tight, free = tighten(cur["sig"])
+            dx, _ = self._qp.solve(cur["r"], cur["J"], cur["E"], cur["dE"], tight, alpha * dsig_v * free[:, None],
                                    lo_lat, hi_lat, head_lim, lo_d, np.maximum(hi_d, lo_d))
             if dx is None:
                 status = "qp-failed"

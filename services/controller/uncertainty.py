@@ -23,13 +23,15 @@ import numpy as np
 
 @dataclass(frozen=True, kw_only=True)
 class PriorStd:
-    """Per control period, in the body frame: std = base + per_mps * |v| (m, m, rad)."""
-    base: tuple[float, float, float] = (0.002, 0.004, 0.012)
-    per_mps: tuple[float, float, float] = (0.004, 0.008, 0.025)
+    """Per control period, in the body frame: std = base + per_mps * |v| + per_radps * |w| (m, m, rad)."""
+    base: tuple[float, float, float] = (0.001, 0.002, 0.003)
+    per_mps: tuple[float, float, float] = (0.004, 0.008, 0.008)
+    per_radps: tuple[float, float, float] = (0.002, 0.004, 0.015)
 
     def __post_init__(self):
-        if len(self.base) != 3 or len(self.per_mps) != 3 or min(*self.base, *self.per_mps) < 0:
-            raise ValueError("prior std: three non-negative values each for base and per_mps")
+        if len(self.base) != 3 or len(self.per_mps) != 3 or len(self.per_radps) != 3 or min(
+                *self.base, *self.per_mps, *self.per_radps) < 0:
+            raise ValueError("prior std: three non-negative values each for base, per_mps and per_radps")
 
 
 class DisturbanceVariance:
@@ -42,7 +44,8 @@ class DisturbanceVariance:
 
     def __call__(self, A: np.ndarray) -> np.ndarray:
         if self.gp is None:
-            std = np.asarray(self.prior.base) + np.outer(np.abs(A[:, 5]), self.prior.per_mps)
+            std = (np.asarray(self.prior.base) + np.outer(np.abs(A[:, 5]), self.prior.per_mps)
+                   + np.outer(np.abs(A[:, 6]), self.prior.per_radps))
             return std ** 2 + self.floor
         return self.gp.predict(A)[1] + self.floor
 
