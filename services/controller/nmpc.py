@@ -248,6 +248,9 @@ class HorizonProblem:
     # the errors the cost weighs; MM-LB-NMPC replaces it with its worst-case boundary sequence
     cost_errors: Callable[[np.ndarray], np.ndarray] | None = None
 
+    # further residuals r(E) with their Jacobians from (E, dE/dw (K, 3, K)); MM-LB-NMPC's worst case
+    extra_residuals: Callable[[np.ndarray, np.ndarray | None], tuple[np.ndarray, np.ndarray | None]] | None = None
+
     def residual(self, w: np.ndarray):
         X, S = self.rollout(w, with_jac=True)
         E = self.errors(X)
@@ -258,13 +261,17 @@ class HorizonProblem:
         J = np.zeros((3 * K + 2 * K + 1, K))
         cd, sd = self.cD[1:], self.sinD[1:]
         Sx = S[1:]                                                              # (K, 3, K)
-        lat = -sd[:, None] * Sx[:, 0] + cd[:, None] * Sx[:, 1]                  # d e_lat_j / dw
-        J[0:3 * K:3] = self.sqrt_q[0] * (cd[:, None] * Sx[:, 0] + sd[:, None] * Sx[:, 1])
-        J[1:3 * K:3] = self.sqrt_q[1] * lat
-        J[2:3 * K:3] = self.sqrt_q[2] * Sx[:, 2]
+        dE = np.empty((K, 3, K))
+        dE[:, 0] = cd[:, None] * Sx[:, 0] + sd[:, None] * Sx[:, 1]
+        dE[:, 1] = -sd[:, None] * Sx[:, 0] + cd[:, None] * Sx[:, 1]             # d e_lat_j / dw
+        dE[:, 2] = Sx[:, 2]
+        J[:3 * K] = (dE * self.sqrt_q[None, :, None]).reshape(3 * K, K)
         J[3 * K:4 * K] = self.sqrt_r * np.eye(K)
         J[4 * K:5 * K] = self.sqrt_dr * (np.eye(K) - np.eye(K, k=-1))
-        J[5 * K] = self.sqrt_qt * (lat[-1] + self.s.lookahead_m * math.cos(E[-1, 2]) * Sx[-1, 2])
+        J[5 * K] = self.sqrt_qt * (dE[-1, 1] + self.s.lookahead_m * math.cos(E[-1, 2]) * dE[-1, 2])
+        if self.extra_residuals is not None:
+            r2, J2 = self.extra_residuals(E, dE)
+            r, J = np.concatenate([r, r2]), np.vstack([J, J2])
         return r, J
 
     def cost(self, w: np.ndarray) -> float:
@@ -272,6 +279,8 @@ class HorizonProblem:
         if self.cost_errors is not None:
             E = self.cost_errors(E)
         extra = self._extra(w, E)
+        if self.extra_residuals is not None:
+            extra = np.concatenate([extra, self.extra_residuals(E, None)[0]])
         return 0.5 * float(np.sum((E * self.sqrt_q) ** 2) + self.s.r_w * np.sum((w - self.w_ref) ** 2)
                            + extra @ extra)
 
