@@ -7,9 +7,11 @@ transform (uncertainty.py), started from the localizer's covariance carried thro
 MM-LB-NMPC (eq. 6.2-6.9): the cost is that of the worst of the 2^3 boundary sequences
 xbar_j + Gamma_l 3 sigma_j (eq. 6.5; errors along, lateral and heading in the route frame), and the
 Gauss-Newton step linearizes it around that sequence with the mean's Jacobian (eq. 6.7-6.8). The
-covariance is computed once per step at the warm start (it moves little within a solve), and the step
-length beta of eq. 6.9 is the Levenberg-Marquardt acceptance of gauss_newton.py: a step that raises the
-worst-case cost is shortened instead of chattering between scenarios.
+cost is separable in the three error components, so the worst case is a sum of absolute values; half the
+evaluation budget goes to a smoothed version of it (Gauss-Newton passes the kinks where the worst case
+switches), the rest to the exact worst sequence. The covariance is computed once per step at the warm
+start (it moves little within a solve), and the step length beta of eq. 6.9 is the Levenberg-Marquardt
+acceptance of gauss_newton.py: a step that raises the worst-case cost is shortened.
 
 C-/RC-LB-NMPC (eq. 7.2-7.6): linear and angular speeds are both optimized; the cost weighs the
 errors of the mean sequence and the deviation from the desired inputs (scheduled speed, route turn
