@@ -122,7 +122,7 @@ def everything() -> str:
 
 # message type carried by each per-robot topic (by key suffix), for recorders and tools
 TOPIC_TYPES: dict[str, type] = {
-    "clock": m.Clock, "sensors/odom": m.Odometry, "truth/pose": m.TruthPose, "loc/state": m.LocState,
+    "clock": m.Clock, "sensors/odom": m.Odometry, "sensors/stereo": m.StereoFrame, "truth/pose": m.TruthPose, "loc/state": m.LocState,
     "cmd/vel": m.VelocityCommand, "ctrl/status": m.ControllerStatus,
     "ctrl/corridor": m.CorridorUpdate, "bridge/status": m.BridgeStatus,
     "trial/event": m.TrialEvent, "experience": m.ExperienceBatch, "experience/ack": m.ExperienceAck,

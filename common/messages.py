@@ -49,6 +49,47 @@ class Odometry(Message):
     theta_odom_rad: float
 
 
+ImageEncoding = Literal["mono8", "png"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class StereoFrame(Message):
+    """A rectified stereo pair with its calibration, stamped with the capture time.
+
+    `encoding` "mono8": `left`/`right` are raw row-major uint8 of height x width; "png": each is a PNG
+    file. Rectified pinhole model of thesis eq. 2.1-2.2 (left camera, x right, y down, z forward);
+    `T_robot_camera` is the left camera's pose in the robot frame (4x4 row-major, metres)."""
+    MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
+    stamp_s: float
+    tick: int
+    trial: int
+    width_px: int
+    height_px: int
+    encoding: ImageEncoding
+    left: bytes
+    right: bytes
+    fu_px: float
+    fv_px: float
+    cu_px: float
+    cv_px: float
+    baseline_m: float
+    T_robot_camera: tuple[float, ...]
+    exposure_s: float
+
+    def __post_init__(self):
+        if len(self.T_robot_camera) != 16:
+            raise ValueError("T_robot_camera must hold 16 values (4x4 row-major)")
+        if self.width_px <= 0 or self.height_px <= 0:
+            raise ValueError("image size must be positive")
+        if self.fu_px <= 0 or self.fv_px <= 0 or self.baseline_m <= 0:
+            raise ValueError("focal lengths and baseline must be positive")
+        if self.encoding == "mono8":
+            n = self.width_px * self.height_px
+            if len(self.left) != n or len(self.right) != n:
+                raise ValueError(f"mono8 images must hold width*height = {n} bytes each, "
+                                 f"got {len(self.left)} and {len(self.right)}")
+
+
 @dataclass(frozen=True, kw_only=True)
 class TruthPose(Message):
     """Simulator ground truth (sim backend only): pose in `world` and body velocity over ground."""
