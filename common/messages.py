@@ -104,12 +104,15 @@ class TruthPose(Message):
     lateral_slip_mps: float
 
 
-LocStatus = Literal["ok", "dropout", "lost", "initializing", "teach", "idle"]
+# "vo": the vision localizer could not refine against the taught map this frame and carries its last
+# fix forward on visual odometry alone, with a growing covariance (a pose, but a weaker one)
+LocStatus = Literal["ok", "vo", "dropout", "lost", "initializing", "teach", "idle"]
 
 
 @dataclass(frozen=True, kw_only=True)
 class LocState(Message):
-    """Localizer output, one per sensor tick. No pose unless status is 'ok' (never a made-up one)."""
+    """Localizer output, one per sensor tick. No pose unless status is 'ok' or 'vo' (never a made-up one)."""
+    SCHEMA_VERSION = 2
     stamp_s: float
     capture_stamp_s: float
     tick: int
@@ -126,12 +129,16 @@ class LocState(Message):
     matched_features: int | None
 
     def __post_init__(self):
-        if self.status == "ok" and (self.T_vertex_robot is None or self.cov_T_vertex_robot is None):
-            raise ValueError("status 'ok' requires T_vertex_robot and cov_T_vertex_robot")
+        if self.has_pose and (self.T_vertex_robot is None or self.cov_T_vertex_robot is None):
+            raise ValueError(f"status {self.status!r} requires T_vertex_robot and cov_T_vertex_robot")
         if self.cov_T_vertex_robot is not None and len(self.cov_T_vertex_robot) != 9:
             raise ValueError("cov_T_vertex_robot must hold 9 values (3x3 row-major)")
         if self.vertex < 0:
             raise ValueError("vertex must be >= 0")
+
+    @property
+    def has_pose(self) -> bool:
+        return self.status in ("ok", "vo")
 
 
 @dataclass(frozen=True, kw_only=True)

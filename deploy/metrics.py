@@ -81,7 +81,7 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
     violations = int(np.count_nonzero((np.abs(lat) > lateral_limit_m) | (np.abs(head) > heading_limit_rad)))
     travel = max(0.0, float(t_end - t0))
     covered = float(np.clip(series.distance_m[active].max(initial=0.0), 0.0, path.length_m))
-    features = [l.matched_features for l in rec.loc if l.status == "ok" and l.matched_features is not None]
+    features = [l.matched_features for l in rec.loc if l.has_pose and l.matched_features is not None]
     est = [s for s in rec.status if s.state in ("tracking", "holding")]
     est_lat = np.array([s.lateral_m for s in est])
     est_head = np.array([s.heading_rad for s in est])

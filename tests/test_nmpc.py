@@ -54,6 +54,21 @@ def test_gauss_newton_on_a_linear_model_is_the_finite_horizon_lqr_solution():
     assert res.iterations <= 2   # one exact step, then nothing left to move
 
 
+def test_gauss_newton_shortens_an_overshooting_step_within_its_evaluation_budget():
+    """Where the linearization over-predicts (here sin(4u): its full Gauss-Newton step lands beyond the
+    minimum, at a higher cost), the damping must grow fast enough that a shorter step is accepted
+    within the few evaluations a control period allows, instead of returning the start unchanged."""
+    def residual(u):
+        return np.array([math.sin(4.0 * u[0])]), np.array([[4.0 * math.cos(4.0 * u[0])]])
+
+    u0 = np.array([0.3])
+    c0 = 0.5 * math.sin(1.2) ** 2
+    full = u0 - math.sin(1.2) / (4.0 * math.cos(1.2))
+    assert 0.5 * math.sin(4.0 * full[0]) ** 2 > c0            # the plain step is rejected
+    res = gauss_newton(residual, u0, np.array([-2.0]), np.array([2.0]), max_iter=5, max_evals=6)
+    assert res.cost < 0.9 * c0 and res.u[0] < u0[0], res
+
+
 STRAIGHT = Path("straight", np.column_stack([np.arange(0, 40, 0.25), np.zeros(160), np.zeros(160)]))
 
 

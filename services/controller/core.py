@@ -17,6 +17,7 @@ class ControllerCore:
         """One control step at robot tick `tick`: the command to apply now, and the disturbance
         observation completed by this estimate (eq. 5.17), if any."""
         obs = None
+        # experiences only from map-refined estimates: a VO-only pose drifts, and the model would learn it
         if loc is not None and loc.status == "ok":
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at)

@@ -85,7 +85,10 @@ def gauss_newton(residual: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
             if new_cost <= cost:
                 mu = mu / 3.0 if mu > 1e-9 * scale else 0.0
                 break
-            mu = max(4.0 * mu, 1e-4 * scale)
+            # escalate fast: the budget allows only a few tries, and a damping that grows slowly from
+            # 1e-4 * scale leaves the step nearly as long as the rejected one, so a solve that starts
+            # in a badly linearized region would return its warm start unchanged step after step
+            mu = max(10.0 * mu, 1e-3 * scale)
             if mu > 1e6 * scale:  # no step lowers the cost: this is a (local) minimum
                 return GNResult(u, cost, it, True, evals, "converged")
         u, r, J, cost = trial, r_t, J_t, new_cost

@@ -104,7 +104,7 @@ class PathTracker:
              command_at: Callable[[int], tuple[float, float] | None] | None = None) -> Decision:
         """`tick`: the robot tick this command will be applied at; `command_at(t)`: the command applied
         at tick t. With both, the law learns which commands were applied since the estimate's capture."""
-        if loc is not None and loc.status == "ok":
+        if loc is not None and loc.has_pose:
             self._last_ok = loc
         last = self._last_ok
         age = now_s - last.capture_stamp_s if last is not None else math.inf

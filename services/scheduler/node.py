@@ -112,7 +112,7 @@ class SchedulerService(Service):
                 c.collector.add(msg.vertex, msg.lateral_m, msg.heading_rad, msg.w_cmd_radps)
             elif msg.state == "finished":
                 c.finished = True
-        elif kind == "loc" and msg.status == "ok" and msg.matched_features is not None and msg.path_id:
+        elif kind == "loc" and msg.has_pose and msg.matched_features is not None and msg.path_id:
             c = self._collecting(robot, msg.path_id, msg.trial)
             if c is not None:
                 c.collector.add_features(msg.vertex, float(msg.matched_features))
