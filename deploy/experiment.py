@@ -25,7 +25,7 @@ from common.codec import Decoder, decode, encode
 from common.config import ConfigError
 from common.messages import (ControllerStatus, ControlReply, ControlRequest, Experience, ExperienceBatch, HyperMsg,
                              LocState, RouteMsg, ScheduleUpdate, SpeedSchedule, StoreStats, TrialEvent, TruthPose)
-from common.path import Path
+from common.path import Path, RouteRecorder
 from common.scenario import Scenario, load_scenario
 from deploy.configs import service_configs, write_service_configs
 from deploy.launcher import Launcher
@@ -115,7 +115,8 @@ class Experiment:
         self.launcher = launcher
         self.robot = sc.robot.name
         self.path_id = sc.path_id
-        self.path: Path | None = None
+        self.path: Path | None = None          # the localizer's route: what the services track
+        self.truth_path: Path | None = None    # the teach pass from simulator truth: what errors are measured on
         self.events: queue.Queue = queue.Queue()
         self.alive: set[str] = set()
         self.ready_timeout_s = ready_timeout_s
@@ -230,6 +231,7 @@ class Experiment:
         t_wall = time.monotonic()
         self.control("bridge", "start", "teach", 0)
         driven, last, last_progress = 0.0, None, time.monotonic()
+        truth_route = RouteRecorder(sc.path.vertex_spacing_m)
         while True:
             kind, msg = self._next_event(1.0)
             if kind is None and time.monotonic() - last_progress > 60.0:
@@ -239,6 +241,7 @@ class Experiment:
                 if last is not None:
                     driven += math.hypot(msg.x_world_m - last.x_world_m, msg.y_world_m - last.y_world_m)
                 last = msg
+                truth_route.add((msg.x_world_m, msg.y_world_m, msg.theta_world_rad))
                 self.progress.update(f"teach   {_bar(driven / ref_len)} {driven:6.1f}/{ref_len:.1f} m  "
                                      f"t={msg.stamp_s:7.1f} s")
             elif kind == "event" and msg.event == "ended" and msg.mode == "teach":
@@ -254,6 +257,10 @@ class Experiment:
         if self.recorder:
             self.recorder.record(keys.route(self.path_id), encode(route))
         self.path = Path.from_msg(route)
+        try:
+            self.truth_path = truth_route.finish(self.path_id, loop=sc.path.loop)
+        except ValueError as exc:
+            raise ExperimentError(f"teach: no usable truth for the taught route: {exc}") from None
         self.teach_wall_s = time.monotonic() - t_wall
         self.progress.line(f"teach   done in {self.teach_wall_s:.1f} s wall: {rep.detail}")
         return self.path
@@ -432,7 +439,8 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
         recorder = McapRecorder(out / "run.mcap", session)
         exp = Experiment(sc, session, recorder, progress, launcher)
         exp.wait_ready()
-        path = exp.teach()
+        exp.teach()
+        path = exp.truth_path
         limits = (sc.constraints.lateral_m, math.radians(sc.constraints.heading_deg))
         model_train, model_hyper = [], None     # what the store knew before the trial
         for trial in range(1, sc.trials.count + 1):
@@ -485,7 +493,7 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
                 "wall s per simulated minute (whole run)": round(wall / (sim_s / 60.0), 2) if sim_s else None,
                 "messages recorded": recorder.count if recorder else 0}
     from deploy.report import write_report  # matplotlib only when a report is written
-    write_report(out / "report.html", sc, exp.path, series, summary, run_info, disturbance,
-                 {t: np.asarray(v.v_mps) for t, v in exp.schedules.items()})
+    write_report(out / "report.html", sc, exp.truth_path, series, summary, run_info, disturbance,
+                 {t: np.asarray(v.v_mps) for t, v in exp.schedules.items()}, route=exp.path)
     progress.line(f"wrote {out / 'summary.json'}, {out / 'report.html'}, {out / 'run.mcap'} in {wall:.1f} s")
     return summary

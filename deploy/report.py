@@ -256,8 +256,10 @@ def _section(title: str, caption: str, png: str) -> str:
 
 def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, series: list[TrialSeries],
                  summary: dict, run_info: dict, disturbance: list[DisturbanceSeries] | None = None,
-                 schedules: dict | None = None) -> None:
-    """Write the experiment report as one self-contained HTML file at `out_path`."""
+                 schedules: dict | None = None, route: Path | None = None) -> None:
+    """Write the experiment report as one self-contained HTML file at `out_path`. `path` is the taught
+    route from truth (what errors are measured against), `route` the localizer's own (the vertices
+    schedules refer to; the same as `path` for the pose source)."""
     series = sorted(series, key=lambda s: s.trial)
     trials = sorted(summary.get("trials") or [], key=lambda t: t.get("trial", 0))
     lat_lim, head_lim = scenario.constraints.lateral_m, scenario.constraints.heading_deg
@@ -284,7 +286,7 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
                  _plot_learning(trials, lat_lim, head_lim)),
         _section("Speed", "Truth speed (solid), commanded speed (dashed) and, with the speed scheduler, its "
                  "schedule (dotted), m/s, against distance along the route (m), coloured by trial.",
-                 _plot_speed(series, norm, path, schedules or {})),
+                 _plot_speed(series, norm, route or path, schedules or {})),
         _section("Solve time", "Controller solve time per control step (ms): per-trial median and 99th "
                  "percentile, and the histogram over all trials.", _plot_solve(series, trials)),
         _section("Learned disturbance", "What the nominal unicycle model misses, per control period, against "

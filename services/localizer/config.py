@@ -4,6 +4,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from services.localizer.vision.settings import VisionSettings
+
 
 @dataclass(frozen=True, kw_only=True)
 class PoseSourceConfig:
@@ -26,3 +28,4 @@ class LocalizerConfig:
     period_s: float = 0.1            # sensor period, to turn delays into ticks
     vertex_spacing_m: float = 0.25
     pose: PoseSourceConfig = field(default_factory=PoseSourceConfig)
+    vision: VisionSettings = field(default_factory=VisionSettings)

@@ -1,8 +1,9 @@
 """Localizer service: turns sensor data into the pose relative to the nearest taught vertex.
 
-The source (`pose` now, `vision` later) is a pure object with start_teach / finish_teach /
-start_repeat / on_truth; this node feeds it, publishes its LocState per tick, keeps the taught routes
-on disk and serves them to any service on `lbc/paths/<path_id>`.
+The source is a pure object with start_teach / finish_teach / start_repeat and a per-tick input:
+`pose` (simulator truth made to look like a localizer) takes truth, `vision` (stereo VT&R) takes
+stereo frames. This node feeds it, publishes its LocState per tick, keeps the taught routes on disk
+and serves them to any service on `lbc/paths/<path_id>`.
 """
 from __future__ import annotations
 
@@ -12,20 +13,24 @@ import numpy as np
 import zenoh
 
 from common import keys
-from common.bus import Node
+from common.bus import Latest, Node
 from common.codec import encode
 from common.config import ConfigError
-from common.messages import TruthPose
+from common.messages import StereoFrame, TruthPose
 from common.service import Control, Service, service_main
 from services.localizer.config import LocalizerConfig
 from services.localizer.pose_source import PoseSource, PoseSourceSettings
 from services.localizer.routes import RouteStore
 
 
-def make_source(cfg: LocalizerConfig) -> PoseSource:
-    if cfg.source != "pose":
-        raise ConfigError(f"localization source {cfg.source!r} is not available in this version "
-                          "(the vision source is not built yet); use source = \"pose\"")
+def make_source(cfg: LocalizerConfig):
+    if cfg.source == "vision":
+        from services.localizer.vision_source import VisionSource   # OpenCV only where it is used
+
+        if abs(cfg.vision.keyframe_dist_m - cfg.vertex_spacing_m) > 1e-9:
+            raise ConfigError(f"vision.keyframe_dist_m ({cfg.vision.keyframe_dist_m}) must equal "
+                              f"vertex_spacing_m ({cfg.vertex_spacing_m}): keyframes are the route's vertices")
+        return VisionSource(cfg.vision, f"{cfg.data_dir}/routes")
     p = cfg.pose
     settings = PoseSourceSettings(
         noise_m=p.noise_m, noise_heading_rad=math.radians(p.noise_heading_deg), noise_tau_s=p.noise_tau_s,
@@ -34,6 +39,9 @@ def make_source(cfg: LocalizerConfig) -> PoseSource:
         dropout_ticks=max(1, int(round(p.dropout_s / cfg.period_s))), vertex_spacing_m=cfg.vertex_spacing_m,
         jumps=tuple(p.jumps))
     return PoseSource(settings, np.random.default_rng([cfg.seed, 2, 0]))
+
+
+FRAME = "__frame__"
 
 
 class LocalizerService(Service):
@@ -49,7 +57,16 @@ class LocalizerService(Service):
         self.path_id = ""
         self.loop = False
         self.k_loc = keys.loc_state(cfg.robot_name)
-        node.subscribe_queue(keys.truth(cfg.robot_name), TruthPose, self.inbox)
+        self.frames_dropped = 0
+        self._frame_seq = 0
+        if cfg.source == "vision":
+            # only the newest frame matters: when localization falls behind (realtime mode), older frames
+            # are skipped rather than queued, so the latency stays one frame (lockstep never skips)
+            self._frame = Latest()
+            node.subscribe(keys.stereo(cfg.robot_name), StereoFrame,
+                           lambda msg, _k: (self._frame.set(msg), self.inbox.put((FRAME, None))))
+        else:
+            node.subscribe_queue(keys.truth(cfg.robot_name), TruthPose, self.inbox)
         node.queryable(f"{keys.ROOT}/paths/*", self._serve_route)
 
     def _serve_route(self, query: zenoh.Query) -> None:
@@ -71,7 +88,16 @@ class LocalizerService(Service):
         finally:
             query.drop()
 
-    def on_message(self, key: str, msg: TruthPose) -> None:
+    def on_message(self, key: str, msg: TruthPose | None) -> None:
+        if key == FRAME:
+            frame, seq = self._frame.get()
+            if seq == self._frame_seq:
+                return          # already handled (a newer frame's wake-up took it)
+            self.frames_dropped += max(seq - self._frame_seq - 1, 0)
+            self._frame_seq = seq
+            if self.mode != "idle" and frame.trial == self.trial:
+                self.node.publish(self.k_loc, self.source.on_frame(frame, self.path_id))
+            return
         if self.mode == "idle" or msg.trial != self.trial:
             return
         self.node.publish(self.k_loc, self.source.on_truth(msg, self.path_id))
@@ -91,7 +117,11 @@ class LocalizerService(Service):
                 except (KeyError, ValueError) as exc:
                     self.mode = "idle"
                     return self.reply(ctl, False, str(exc))
-                self.source.start_repeat(path, req.trial, np.random.default_rng([self.cfg.seed, 2, req.trial]))
+                try:
+                    self.source.start_repeat(path, req.trial, np.random.default_rng([self.cfg.seed, 2, req.trial]))
+                except ValueError as exc:
+                    self.mode = "idle"
+                    return self.reply(ctl, False, str(exc))
                 self.mode, self.trial, self.path_id = "repeat", req.trial, req.path_id
                 return self.reply(ctl, True, f"route {req.path_id}: {len(path)} vertices, {path.length_m:.1f} m")
             return self.reply(ctl, False, "prepare needs mode teach or repeat")
