@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path as FsPath
 from typing import Literal
 
+from common.camera import StereoConfig
 from common.config import ConfigError, read_toml
 from common.messages import check_name
 from common.robot import RobotParams, robot_from_preset
@@ -95,6 +96,12 @@ class LocalizationSection:
     # teach-pass failures (thesis 5.4.5): [at_m, length_m, lateral_m] stretches of the route where the
     # estimate is shifted sideways by lateral_m although the robot does not move (every trial alike)
     jumps: list[tuple[float, float, float]] = field(default_factory=list)
+    # run.mcap keeps one stereo frame in this many (a 640x480 pair is 0.6 MB; ten a second would make
+    # gigabytes); 1 records every frame
+    record_stereo_every: int = 50
+    # source = "vision": the simulated stereo camera the bridge renders (the noise, delay, dropout and
+    # jump keys above belong to the pose source; vision has whatever errors its images give it)
+    camera: StereoConfig = field(default_factory=StereoConfig)
 
     def __post_init__(self):
         if min(self.noise_m, self.noise_heading_deg, self.noise_tau_s, self.jitter_m, self.delay_s,
@@ -102,6 +109,8 @@ class LocalizationSection:
             raise ValueError("noise, jitter, correlation time, delay and dropout lengths must be >= 0")
         if not 0.0 <= self.dropout_prob <= 1.0:
             raise ValueError("dropout_prob must be in [0, 1]")
+        if self.record_stereo_every < 1:
+            raise ValueError("record_stereo_every must be >= 1")
         if any(length <= 0 for _, length, _ in self.jumps):
             raise ValueError("jumps: each [at_m, length_m, lateral_m] needs length_m > 0")
 

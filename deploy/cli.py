@@ -10,7 +10,7 @@ import threading
 
 from common.config import ConfigError
 
-BENCHES = ("bus", "gp", "store", "controller")
+BENCHES = ("bus", "gp", "store", "controller", "localizer")
 
 
 def _raise_interrupt(_signum, _frame):

@@ -14,6 +14,7 @@ from services.gp_store.config import BinConfig, FitConfig, StoreConfig
 from services.scheduler.config import SchedulerConfig
 from services.scheduler.core import SchedulerParams
 from services.localizer.config import LocalizerConfig, PoseSourceConfig
+from services.localizer.vision.settings import VisionSettings
 
 
 def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
@@ -25,11 +26,13 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
                           corner_radius_m=sc.path.corner_radius_m, speed_mps=sc.path.teach_speed_mps),
         clock=ClockConfig(mode=sc.sim.clock, period_s=sc.sim.period_s, physics_substeps=sc.sim.physics_substeps,
                           watchdog_s=sc.sim.watchdog_s, lockstep_timeout_s=sc.sim.lockstep_timeout_s),
-        start_offset_m=sc.trials.start_offset_m, start_offset_deg=sc.trials.start_offset_deg)
+        start_offset_m=sc.trials.start_offset_m, start_offset_deg=sc.trials.start_offset_deg,
+        stereo=sc.localization.camera if sc.localization.source == "vision" else None)
     loc = sc.localization
     localizer = LocalizerConfig(
         robot_name=robot, source=loc.source, seed=sc.seed, data_dir=str(data_dir), period_s=sc.sim.period_s,
         vertex_spacing_m=sc.path.vertex_spacing_m,
+        vision=VisionSettings(keyframe_dist_m=sc.path.vertex_spacing_m),   # keyframes are the route's vertices
         pose=PoseSourceConfig(noise_m=loc.noise_m, noise_heading_deg=loc.noise_heading_deg,
                               noise_tau_s=loc.noise_tau_s, jitter_m=loc.jitter_m, delay_s=loc.delay_s,
                               dropout_prob=loc.dropout_prob, dropout_s=loc.dropout_s, jumps=list(loc.jumps)))

@@ -58,8 +58,6 @@ def check_supported(sc: Scenario) -> None:
     if sc.controller.algorithm not in AVAILABLE_ALGORITHMS:
         raise ConfigError(f"controller.algorithm = {sc.controller.algorithm!r} is not available in this version "
                           f"(available: {', '.join(AVAILABLE_ALGORITHMS)})")
-    if sc.localization.source != "pose":
-        raise ConfigError("localization.source = 'vision' is not available in this version; use 'pose'")
     if sc.scheduler.enabled and sc.trials.speeds:
         raise ConfigError("trials.speeds and scheduler.enabled both set the speed: choose one")
 
@@ -436,7 +434,7 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
         except ConnectionError as exc:
             dead = launcher.exited() if launcher else []
             raise ExperimentError(f"{exc}" + (f"; {dead[0].name} exited:\n{dead[0].tail()}" if dead else "")) from None
-        recorder = McapRecorder(out / "run.mcap", session)
+        recorder = McapRecorder(out / "run.mcap", session, stereo_every=sc.localization.record_stereo_every)
         exp = Experiment(sc, session, recorder, progress, launcher)
         exp.wait_ready()
         exp.teach()

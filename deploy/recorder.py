@@ -22,8 +22,13 @@ log = logging.getLogger(__name__)
 
 
 class McapRecorder:
-    def __init__(self, path: str | Path, session: zenoh.Session, key: str = keys.everything()):
+    def __init__(self, path: str | Path, session: zenoh.Session, key: str = keys.everything(),
+                 stereo_every: int = 1):
+        """`stereo_every`: keep one stereo frame in this many (per key); everything else is kept."""
         self.path = Path(path)
+        self.stereo_every = max(int(stereo_every), 1)
+        self.stereo_skipped = 0
+        self._stereo_seen: dict[str, int] = {}
         self._fh = open(self.path, "wb")
         self._writer = Writer(self._fh)
         self._writer.start(profile="", library="lbc")
@@ -38,7 +43,14 @@ class McapRecorder:
         self._alive = session.liveliness().declare_subscriber(f"{keys.ROOT}/alive/**", self._on_alive, history=True)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+        key = str(sample.key_expr)
+        if self.stereo_every > 1 and key.endswith("/sensors/stereo"):
+            n = self._stereo_seen.get(key, 0)
+            self._stereo_seen[key] = n + 1
+            if n % self.stereo_every:
+                self.stereo_skipped += 1
+                return
+        self._queue.put((key, sample.payload.to_bytes(), time.time_ns()))
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         t = time.time_ns()

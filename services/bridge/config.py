@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from common.camera import StereoConfig
 from common.robot import RobotParams
 from common.scenario import TerrainPatch
 
@@ -36,3 +37,4 @@ class BridgeConfig:
     clock: ClockConfig = field(default_factory=ClockConfig)
     start_offset_m: float = 0.0
     start_offset_deg: float = 0.0
+    stereo: StereoConfig | None = None   # the simulated stereo camera; None: no frames

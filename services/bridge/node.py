@@ -19,6 +19,7 @@ from common.messages import (BridgeStatus, Clock, LocState, Odometry, TrialEvent
                              VelocityCommand)
 from common.service import Control, Service, service_main
 from services.bridge.config import BridgeConfig
+from services.bridge.render import StereoRenderer
 from services.bridge.simulator import SimSample, Simulator
 from services.bridge.teach_driver import PurePursuitDriver, smooth_waypoints
 
@@ -48,6 +49,9 @@ class BridgeService(Service):
         r = self.robot
         self.k_clock, self.k_truth, self.k_odom = keys.clock(r), keys.truth(r), keys.odom(r)
         self.k_status, self.k_event = keys.bridge_status(r), keys.trial_event(r)
+        self.k_stereo = keys.stereo(r)
+        # the textured world is built once, up front (a few seconds), so no tick waits for it
+        self.renderer = StereoRenderer.from_bridge_config(cfg) if cfg.stereo is not None else None
         node.subscribe_queue(keys.cmd_vel(r), VelocityCommand, self.inbox)
         node.subscribe_queue(keys.loc_state(r), LocState, self.inbox)
         node.liveliness_subscriber(keys.alive_all(r), lambda k, up: self.inbox.put(("__alive__", (k, up))))
@@ -204,6 +208,9 @@ class BridgeService(Service):
                                               cmd_age_s=s.cmd_age_s, v_cmd_applied_mps=s.v_cmd,
                                               w_cmd_applied_radps=s.w_cmd,
                                               rejected_msgs=self.node.decoder.rejected_total))
+        if self.renderer is not None:
+            # rendered from the truth pose on a flat world: side slopes tilt the robot, not the images
+            r.publish(self.k_stereo, self.renderer.frame_for_sample(s, trial), droppable=True)
         # truth last: the localizer reacts to it, so everything else of this tick is already out
         r.publish(self.k_truth, TruthPose(stamp_s=s.stamp_s, tick=s.tick, trial=trial, x_world_m=s.x,
                                           y_world_m=s.y, theta_world_rad=s.theta, v_mps=s.v_ground,
