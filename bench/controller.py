@@ -21,12 +21,11 @@ import os
 import sys
 import tempfile
 import time
-from contextlib import nullcontext
 
 import numpy as np
 
 from bench.closed_loop import ClosedLoop
-from bench.report import run_and_print
+from bench.report import run_and_print, single_core
 from common.messages import Experience, HyperDim, HyperMsg
 from common.scenario import TerrainPatch
 from services.controller.gauss_newton import gauss_newton
@@ -46,15 +45,6 @@ TERRAIN = [TerrainPatch(kind="side_slope", center=(13.0, 2.0), radius_m=6.0, slo
 SPEEDS = (0.30, 0.55, 0.80)       # speed bins 1, 2, 3 with v_bin = 0.25
 POLICY = BinPolicy(v_bin_mps=0.25, c_bin=4, c_vertex=7, c_velocity=1)
 DT = 0.1
-
-
-def _pin_to_one_core() -> str:
-    try:
-        cpu = min(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpu})
-        return f"cpu {cpu}"
-    except (AttributeError, OSError):
-        return "not pinned"
 
 
 def build_memory(seed: int, workdir: str):
@@ -181,13 +171,7 @@ def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.nda
 
 
 def run_bench(args) -> dict:
-    pinned = _pin_to_one_core()
-    limit = nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-        limit = threadpool_limits(limits=1, user_api="blas")
-    except ImportError:
-        log.warning("threadpoolctl not installed: BLAS keeps its default threads")
+    pinned, limit = single_core()
     settings = NMPCSettings(horizon=args.horizon)
     with limit, tempfile.TemporaryDirectory() as work:
         t0 = time.perf_counter()

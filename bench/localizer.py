@@ -16,13 +16,11 @@ import logging
 import sys
 import tempfile
 import time
-from contextlib import nullcontext
 
-import cv2
 import numpy as np
 
-from bench.localizer_kitti import _pin_to_one_core, bench_kitti
-from bench.report import run_and_print
+from bench.localizer_kitti import bench_kitti
+from bench.report import run_and_print, single_core
 from common import se2
 from common.codec import decode, encode
 from common.messages import StereoFrame
@@ -46,14 +44,7 @@ def _offset(ref: np.ndarray, amplitude_m: float) -> np.ndarray:
 
 
 def bench_sim(speed_mps: float = 0.5, seed: int = 1) -> dict:
-    pinned = _pin_to_one_core()
-    cv2.setNumThreads(1)
-    limit = nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-        limit = threadpool_limits(limits=1, user_api="blas")
-    except ImportError:
-        log.warning("threadpoolctl not installed: BLAS keeps its default threads")
+    pinned, limit = single_core()
     renderer = StereoRenderer(StereoConfig(), build_world(WAYPOINTS, seed), seed)
     ref = smooth_waypoints(WAYPOINTS, 3.0, False, step_m=speed_mps * 0.1)
     with tempfile.TemporaryDirectory() as tmp, limit:

@@ -20,17 +20,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from bench.report import run_and_print
+from bench.report import run_and_print, single_core
 from common.shared_data import shared_data_dir
 from services.localizer.vision import StereoCamera, StereoFrontend, VisionSettings, VisualRepeat, VisualTeach
 from services.localizer.vision.pose import inv_T, rotation_angle_deg
@@ -73,15 +71,6 @@ def load_kitti(folder: Path | None = None) -> KittiSequence:
     return KittiSequence(StereoCamera.from_projections(rows[0], rows[1], w, h), left, right, poses)
 
 
-def _pin_to_one_core() -> str:
-    try:
-        cpu = min(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpu})
-        return f"cpu {cpu}"
-    except (AttributeError, OSError):
-        return "not pinned"
-
-
 def _teach(seq: KittiSequence, images, frames, settings: VisionSettings) -> tuple[list[float], object]:
     fe, teach, times = StereoFrontend(seq.camera, settings), VisualTeach(seq.camera, settings), []
     for i in frames:
@@ -95,14 +84,7 @@ def _teach(seq: KittiSequence, images, frames, settings: VisionSettings) -> tupl
 
 def bench_kitti(repeats: int = 1, settings: VisionSettings | None = None) -> dict:
     settings = settings or VisionSettings()
-    pinned = _pin_to_one_core()
-    cv2.setNumThreads(1)
-    limit = nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-        limit = threadpool_limits(limits=1, user_api="blas")
-    except ImportError:
-        log.warning("threadpoolctl not installed: BLAS keeps its default threads")
+    pinned, limit = single_core()
     seq = load_kitti()
     images = [seq.images(i) for i in range(len(seq))]
     n = len(seq)

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
 import sys
 import threading
+from contextlib import AbstractContextManager, nullcontext
 from typing import Callable
 
 import zenoh
@@ -35,3 +37,22 @@ def run_and_print(run: Callable[[], dict], failures: tuple[type[BaseException], 
     sys.stdout.write(json.dumps(result) + "\n")
     sys.stdout.flush()
     return 0
+
+
+def single_core() -> tuple[str, AbstractContextManager]:
+    """Pin the process to one CPU and OpenCV to one thread now; the returned context limits BLAS to
+    one thread (threadpoolctl, when installed). Returns (where it is pinned, that context)."""
+    try:
+        cpu = min(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpu})
+        pinned = f"cpu {cpu}"
+    except (AttributeError, OSError):
+        pinned = "not pinned"
+    if "cv2" in sys.modules:
+        sys.modules["cv2"].setNumThreads(1)
+    try:
+        from threadpoolctl import threadpool_limits
+        return pinned, threadpool_limits(limits=1, user_api="blas")
+    except ImportError:
+        log.warning("threadpoolctl not installed: BLAS keeps its default threads")
+        return pinned, nullcontext()

@@ -60,10 +60,13 @@ def test_design_example_is_accepted_as_written():
     assert sc.trials.count == 10 and sc.trials.learning
 
 
-def test_unavailable_features_are_refused_clearly_not_substituted():
+def test_the_design_example_runs_as_written_and_contradictions_are_refused():
     sc = parse_scenario(tomllib.loads(DESIGN_EXAMPLE))
-    with pytest.raises(ConfigError, match="not available"):
-        check_supported(sc)
+    check_supported(sc)     # vision, rc-lb-nmpc and the scheduler are all there
+    both = tomllib.loads(DESIGN_EXAMPLE)
+    both["trials"]["speeds"] = [0.5, 0.6]
+    with pytest.raises(ConfigError, match="choose one"):
+        check_supported(parse_scenario(both))
 
 
 def _minimal(**extra):
