@@ -64,7 +64,7 @@ def test_the_design_example_runs_as_written_and_contradictions_are_refused():
     sc = parse_scenario(tomllib.loads(DESIGN_EXAMPLE))
     check_supported(sc)     # vision, rc-lb-nmpc and the scheduler are all there
     both = tomllib.loads(DESIGN_EXAMPLE)
-    both["trials"]["speeds"] = [0.5, 0.6]
+    both["trials"]["speeds"] = [0.5] * both["trials"]["count"]
     with pytest.raises(ConfigError, match="choose one"):
         check_supported(parse_scenario(both))
 
