@@ -41,6 +41,10 @@ class TrialSeries:
     v_cmd_mps: np.ndarray
     w_cmd_radps: np.ndarray
     solve_ms: np.ndarray
+    # the localizer's frames: distance, matched features (nan when none), refined against the map?
+    loc_distance_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    loc_features: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    loc_refined: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 def truth_series(path: Path, rec: TrialRecord) -> TrialSeries:
@@ -53,8 +57,12 @@ def truth_series(path: Path, rec: TrialRecord) -> TrialSeries:
     arr = np.array(rows, dtype=float).reshape(-1, 7)
     tracking = [s for s in rec.status if s.state in ("tracking", "holding", "stopped", "finished")]
     st = np.array([(s.distance_m, s.v_cmd_mps, s.w_cmd_radps, s.solve_ms) for s in tracking], dtype=float).reshape(-1, 4)
+    loc = [(l.distance_m, np.nan if l.matched_features is None else l.matched_features, l.status == "ok")
+           for l in rec.loc if l.status not in ("idle", "teach", "initializing")]
+    la = np.array(loc, dtype=float).reshape(-1, 3)
     return TrialSeries(rec.trial, *arr.T, cmd_distance_m=st[:, 0], v_cmd_mps=st[:, 1], w_cmd_radps=st[:, 2],
-                       solve_ms=st[:, 3])
+                       solve_ms=st[:, 3], loc_distance_m=la[:, 0], loc_features=la[:, 1],
+                       loc_refined=la[:, 2].astype(bool))
 
 
 def _max_abs(a: np.ndarray) -> float:

@@ -122,6 +122,18 @@ def _plot_errors(series: list[TrialSeries], lat_lim: float, head_lim_deg: float,
         return _png(fig)
 
 
+def _plot_features(series: list[TrialSeries], norm: Normalize) -> str:
+    with _figure(1, 1, size=(10, 3.8)) as (fig, (ax,)):
+        for s in series:
+            ax.plot(s.loc_distance_m, s.loc_features, color=_CMAP(norm(s.trial)), lw=0.8)
+            miss = ~s.loc_refined
+            ax.plot(s.loc_distance_m[miss], np.zeros(int(miss.sum())), "x", color=_CMAP(norm(s.trial)), ms=5)
+        ax.set(xlabel="distance along route (m)", ylabel="matched features", ylim=(0, None))
+        ax.grid(alpha=0.3)
+        _trial_colorbar(fig, [ax], norm)
+        return _png(fig)
+
+
 def _plot_learning(trials: list[dict], lat_lim: float, head_lim_deg: float) -> str:
     with _figure(1, 2, size=(10, 4)) as (fig, (ax_l, ax_h)):
         n = [t.get("trial") for t in trials]
@@ -287,6 +299,10 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
         _section("Speed", "Truth speed (solid), commanded speed (dashed) and, with the speed scheduler, its "
                  "schedule (dotted), m/s, against distance along the route (m), coloured by trial.",
                  _plot_speed(series, norm, route or path, schedules or {})),
+        *([_section("Localization", "Matched features per frame (inliers against the taught keyframe) "
+                    "against distance along the route (m), coloured by trial; crosses at zero mark frames not "
+                    "refined against the map (visual odometry only, or lost).", _plot_features(series, norm))]
+          if any(np.isfinite(s.loc_features).any() for s in series) else []),
         _section("Solve time", "Controller solve time per control step (ms): per-trial median and 99th "
                  "percentile, and the histogram over all trials.", _plot_solve(series, trials)),
         _section("Learned disturbance", "What the nominal unicycle model misses, per control period, against "

@@ -41,3 +41,4 @@ def test_a_route_taught_and_repeated_on_vision(tmp_path, scenario_file):
                 statuses.append(loc.status)
     assert statuses and statuses.count("ok") >= 0.99 * len(statuses), {s: statuses.count(s) for s in set(statuses)}
     assert (out / "data" / "routes" / "vision1.vmap").exists()
+    assert "<h2>Localization</h2>" in (out / "report.html").read_text()
