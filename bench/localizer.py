@@ -35,7 +35,8 @@ log = logging.getLogger("bench.localizer")
 WAYPOINTS = [[0.0, 0.0], [8.0, 0.0], [14.0, 4.0], [22.0, 4.0]]
 
 
-def _offset(ref: np.ndarray, amplitude_m: float) -> np.ndarray:
+def offset_route(ref: np.ndarray, amplitude_m: float) -> np.ndarray:
+    """The route shifted sideways by amplitude * sin(pi s / L) (0 at both ends), heading along it."""
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
     off = amplitude_m * np.sin(np.pi * s / s[-1])
     xy = ref[:, :2] + off[:, None] * np.column_stack([-np.sin(ref[:, 2]), np.cos(ref[:, 2])])
@@ -59,7 +60,7 @@ def bench_sim(speed_mps: float = 0.5, seed: int = 1) -> dict:
                 kf_truth.append(p)
         path = src.finish_teach("bench", loop=False, taught_by="bench")
         src.start_repeat(path, 1)
-        drive = _offset(ref, 0.5)
+        drive = offset_route(ref, 0.5)
         lat_ms, statuses, err = [], [], []
         for k, p in enumerate(drive):
             t0 = time.perf_counter()

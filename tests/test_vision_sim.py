@@ -5,11 +5,11 @@ localizer's pose relative to its vertex must match the truth pose relative to wh
 when that keyframe was taken (thesis 2.4: -0.3 cm mean, 2.9 cm std against DGPS)."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
 
+from bench.localizer import offset_route
 from common import se2
 from common.camera import StereoConfig
 from services.bridge.render import StereoRenderer
@@ -20,15 +20,6 @@ from services.localizer.vision_source import VisionSource
 
 WAYPOINTS = [[0.0, 0.0], [6.0, 0.0], [11.0, 3.0], [16.0, 3.0]]
 STEP_M = 0.05           # 0.5 m/s at 10 Hz
-
-
-def offset_route(ref: np.ndarray, amplitude_m: float) -> np.ndarray:
-    """The route shifted sideways by amplitude * sin(pi s / L) (0 at both ends), heading along it."""
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
-    off = amplitude_m * np.sin(math.pi * s / s[-1])
-    xy = ref[:, :2] + off[:, None] * np.column_stack([-np.sin(ref[:, 2]), np.cos(ref[:, 2])])
-    d = np.gradient(xy, axis=0)
-    return np.column_stack([xy, np.arctan2(d[:, 1], d[:, 0])])
 
 
 @pytest.fixture(scope="module")
