@@ -31,7 +31,8 @@ import numpy as np
 from bench.report import run_and_print, single_core
 from common.shared_data import shared_data_dir
 from services.localizer.vision import StereoCamera, StereoFrontend, VisionSettings, VisualRepeat, VisualTeach
-from services.localizer.vision.pose import inv_T, rotation_angle_deg
+from common.se3 import inverse as inv_T
+from common.se3 import rotation_angle_deg
 
 log = logging.getLogger("bench.localizer_kitti")
 RELOC_TOL_M, RELOC_TOL_DEG = 0.15, 0.5

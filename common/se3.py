@@ -1,5 +1,5 @@
 """SE(3) poses as 4x4 homogeneous matrices. `T_a_b` maps coordinates in frame b into frame a, so
-`T_a_b @ T_b_c = T_a_c`, as in `common.se2`."""
+`T_a_b @ T_b_c = T_a_c`, as in `common.se2`. Perturbations xi = (rho, phi): translation first."""
 from __future__ import annotations
 
 import math
@@ -20,22 +20,47 @@ def hat(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula."""
+    a = float(np.linalg.norm(phi))
+    if a < 1e-12:
+        return np.eye(3) + hat(phi)
+    k = hat(np.asarray(phi, dtype=float) / a)
+    return np.eye(3) + math.sin(a) * k + (1.0 - math.cos(a)) * (k @ k)
+
+
 def exp(xi: np.ndarray) -> np.ndarray:
-    """exp of the twist xi = (rho, phi) (translation first), via Rodrigues with the SE(3) V matrix."""
+    """exp((rho, phi)^) as a 4x4 matrix (translation V rho, with SE(3)'s left Jacobian V)."""
     xi = np.asarray(xi, dtype=float)
     rho, phi = xi[:3], xi[3:]
-    th = float(np.linalg.norm(phi))
-    P = hat(phi)
-    if th < 1e-9:
-        R, V = np.eye(3) + P, np.eye(3) + 0.5 * P
+    a = float(np.linalg.norm(phi))
+    K = hat(phi)
+    if a < 1e-9:
+        V = np.eye(3) + 0.5 * K
     else:
-        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th ** 2
-        R = np.eye(3) + a * P + b * P @ P
-        V = np.eye(3) + b * P + (th - math.sin(th)) / th ** 3 * P @ P
+        V = np.eye(3) + (1.0 - math.cos(a)) / a ** 2 * K + (a - math.sin(a)) / a ** 3 * (K @ K)
     T = np.eye(4)
-    T[:3, :3] = R
+    T[:3, :3] = so3_exp(phi)
     T[:3, 3] = V @ rho
     return T
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """Ad(T) for xi = (rho, phi): exp((Ad(T) xi)^) = T exp(xi^) T^-1."""
+    C, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = C
+    A[:3, 3:] = hat(t) @ C
+    return A
+
+
+def rotation_angle_deg(C: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(C[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def transform(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """(N, 3) points given in frame b expressed in frame a, for T = T_a_b."""
+    return P @ T[:3, :3].T + T[:3, 3]
 
 
 def to_se2(T: np.ndarray) -> np.ndarray:

@@ -13,7 +13,8 @@ from bench.localizer_kitti import load_kitti
 from common.shared_data import shared_data_dir
 from services.localizer.vision import (StereoFrontend, VisionSettings, VisualRepeat, VisualTeach, estimate_pose,
                                        load_map, save_map)
-from services.localizer.vision.pose import inv_T, rotation_angle_deg
+from common.se3 import inverse as inv_T
+from common.se3 import rotation_angle_deg
 
 log = logging.getLogger(__name__)
 KITTI = shared_data_dir() / "kitti_seq1"

@@ -10,7 +10,7 @@ import pytest
 
 from services.localizer.vision import Keyframe, MapFileError, StereoCamera, VisionMap, load_map, save_map
 from services.localizer.vision.map_file import FORMAT, VERSION
-from services.localizer.vision.pose import se3_exp
+from common.se3 import exp as se3_exp
 
 CAM = StereoCamera(fu=707.1, fv=707.1, cu=601.9, cv=183.1, baseline_m=0.537, width=1226, height=370)
 
@@ -181,14 +181,14 @@ def _pose(z: float, x: float = 0.0) -> np.ndarray:
 
 
 def _rel_err(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    from services.localizer.vision.pose import inv_T, rotation_angle_deg
+    from common.se3 import inverse as inv_T, rotation_angle_deg
     D = T @ inv_T(T_true)
     return float(np.linalg.norm(D[:3, 3])), rotation_angle_deg(D)
 
 
 def test_teach_and_repeat_on_a_synthetic_world():
     from services.localizer.vision import VisionSettings, VisualRepeat, VisualTeach
-    from services.localizer.vision.pose import inv_T
+    from common.se3 import inverse as inv_T
     s = VisionSettings()
     w = World()
     teach = VisualTeach(CAM, s)
@@ -220,7 +220,7 @@ def test_teach_and_repeat_on_a_synthetic_world():
 
 def test_repeat_dead_reckons_then_declares_itself_lost():
     from services.localizer.vision import VisionSettings, VisualRepeat, VisualTeach
-    from services.localizer.vision.pose import inv_T
+    from common.se3 import inverse as inv_T
     s = VisionSettings(max_vo_frames=4)
     w = World(seed=1)
     teach = VisualTeach(CAM, s)

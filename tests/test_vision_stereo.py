@@ -12,7 +12,9 @@ from scipy.linalg import expm
 from common.shared_data import shared_data_dir
 from services.localizer.vision import (StereoCamera, StereoFrontend, StereoKeypoints, VisionSettings,
                                        estimate_pose)
-from services.localizer.vision.pose import adjoint, hat, inv_T, se3_exp
+from common.se3 import adjoint, hat
+from common.se3 import exp as se3_exp
+from common.se3 import inverse as inv_T
 
 log = logging.getLogger(__name__)
 CAM = StereoCamera(fu=700.0, fv=690.0, cu=610.0, cv=185.0, baseline_m=0.54, width=1226, height=370)

@@ -22,61 +22,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from common.se3 import exp as se3_exp
+from common.se3 import transform
 from services.localizer.vision.camera import StereoCamera
 from services.localizer.vision.features import StereoKeypoints, hamming, window_pairs
 from services.localizer.vision.settings import VisionSettings
-
-
-# ---------------------------------------------------------------- SE(3) helpers
-def hat(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def so3_exp(phi: np.ndarray) -> np.ndarray:
-    a = float(np.linalg.norm(phi))
-    if a < 1e-12:
-        return np.eye(3) + hat(phi)
-    k = hat(np.asarray(phi) / a)
-    return np.eye(3) + np.sin(a) * k + (1.0 - np.cos(a)) * (k @ k)
-
-
-def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """exp((rho, phi)^) as a 4x4 matrix."""
-    rho, phi = np.asarray(xi[:3], float), np.asarray(xi[3:], float)
-    a = float(np.linalg.norm(phi))
-    K = hat(phi)
-    if a < 1e-9:
-        V = np.eye(3) + 0.5 * K
-    else:
-        V = np.eye(3) + (1.0 - np.cos(a)) / a ** 2 * K + (a - np.sin(a)) / a ** 3 * (K @ K)
-    T = np.eye(4)
-    T[:3, :3] = so3_exp(phi)
-    T[:3, 3] = V @ rho
-    return T
-
-
-def inv_T(T: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """Ad(T) for xi = (rho, phi): exp((Ad(T) xi)^) = T exp(xi^) T^-1."""
-    C, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = A[3:, 3:] = C
-    A[:3, 3:] = hat(t) @ C
-    return A
-
-
-def rotation_angle_deg(C: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(C[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def transform(T: np.ndarray, P: np.ndarray) -> np.ndarray:
-    return P @ T[:3, :3].T + T[:3, 3]
 
 
 # ---------------------------------------------------------------- result

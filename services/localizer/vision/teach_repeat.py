@@ -17,7 +17,9 @@ import numpy as np
 
 from services.localizer.vision.camera import StereoCamera
 from services.localizer.vision.features import StereoKeypoints
-from services.localizer.vision.pose import PoseEstimate, adjoint, estimate_pose, inv_T, rotation_angle_deg
+from common.se3 import adjoint, rotation_angle_deg
+from common.se3 import inverse as inv_T
+from services.localizer.vision.pose import PoseEstimate, estimate_pose
 from services.localizer.vision.settings import VisionSettings
 
 log = logging.getLogger("localizer.vision")
