@@ -93,7 +93,11 @@ class LocalizerService(Service):
             frame, seq = self._frame.get()
             if seq == self._frame_seq:
                 return          # already handled (a newer frame's wake-up took it)
-            self.frames_dropped += max(seq - self._frame_seq - 1, 0)
+            skipped = max(seq - self._frame_seq - 1, 0)
+            if skipped and self.frames_dropped // 100 != (self.frames_dropped + skipped) // 100:
+                self.log.warning("localization is slower than the camera: %d stale frames skipped so far",
+                                 self.frames_dropped + skipped)
+            self.frames_dropped += skipped
             self._frame_seq = seq
             if self.mode != "idle" and frame.trial == self.trial:
                 self.node.publish(self.k_loc, self.source.on_frame(frame, self.path_id))
