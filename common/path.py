@@ -134,6 +134,12 @@ class Path:
         diff = self.poses[a + 1, :2] - self.poses[a, :2]
         return np.arctan2(diff[..., 1], diff[..., 0])
 
+    def heading_slope_at(self, distance_m):
+        """d(taught heading)/d(arc length) of pose_at's interpolation (rad/m): the segment's."""
+        d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)
+        a = np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2)
+        return se2.wrap(self.poses[a + 1, 2] - self.poses[a, 2]) / self.segment_lengths[a]
+
     def pose_at(self, distance_m):
         """Interpolated route pose(s) at arc length(s), clamped to the route: (3,) or (M, 3)."""
         d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)

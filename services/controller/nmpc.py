@@ -344,6 +344,7 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
     problem = HorizonProblem(x0, desired, s_d, v, w_ref, dt, settings, model, v_prev, u_prev, tangent)
     problem.delay_trace = trace
     problem.kappa = kappa
+    problem.path = path
     return problem, w_limit
 
 

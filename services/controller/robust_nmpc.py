@@ -157,10 +157,56 @@ class RCLBNMPCLaw:
         self._qp: CorridorQP | None = None
         self.last_plan: Plan | None = None
 
+    @staticmethod
+    def _follow_speeds(p: HorizonProblem, v: np.ndarray) -> None:
+        """Desired poses where the planned speeds take the robot. Measured against poses placed at the
+        scheduled speed, a plan that slows down would be judged against route points ahead of it: in a
+        turn their direction differs from the robot's by the turn angle still to come, a phantom lateral
+        and heading error that the corridor limits then fight (the law slowed and sped up in turns)."""
+        s_d = p.sD[0] + np.concatenate([[0.0], np.cumsum(v) * p.dt])
+        if np.array_equal(s_d, p.sD) and hasattr(p, "heading_slope"):
+            return
+        D = p.path.pose_at(s_d)
+        D[:, 2] = p.D[0, 2] + np.unwrap(D[:, 2] - p.D[0, 2])
+        direction = p.path.tangent_at(s_d)
+        p.D, p.sD, p.cD, p.sinD = D, s_d, np.cos(direction), np.sin(direction)
+        p.kappa = np.interp(s_d[:-1], p.path.s, p.path.curvature)
+        p.heading_slope = p.path.heading_slope_at(s_d[1:])
+        p._memo = []
+
+    SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)
+
+    def _speed_cap(self, p: HorizonProblem, v, w, A, gp, var, Sigma0, cap):
+        """(v, w, scale, covariances, route sigmas) of the fastest rung that fits, starting from last step's."""
+        s = self.settings
+        ladder = self.SPEED_LADDER
+        k_prev = getattr(self, "_rung", 0) if self._prev is not None else 0
+        kappa0 = p.kappa.copy()
+        v0 = np.maximum(v, 1e-3)
+
+        def attempt(k: int):
+            vk = np.clip(np.minimum(v, ladder[k] * p.v), s.v_min_mps, None)
+            self._follow_speeds(p, vk)
+            wk = vk * p.kappa + (w - v * kappa0) * vk / v0     # same path, corrections scaled with speed
+            X, _ = p.rollout(wk, with_jac=False, v=vk, a_out=A)
+            Sig, sig = horizon_sigmas(p, X, A, vk, wk, gp, var, Sigma0, s, self.dt)
+            t = self.alpha * sig[1:]
+            fits = bool(np.all(t[:, 0] <= cap[1:, 1]) and np.all(t[:, 1] <= cap[1:, 2])) if len(t) else True
+            return fits, (vk, wk, ladder[k], Sig, sig)
+
+        k = max(k_prev - 1, 0)                 # try one rung faster than last step first
+        fits, best = attempt(k)
+        while not fits and k + 1 < len(ladder):
+            k += 1
+            fits, best = attempt(k)
+        self._rung = k
+        return best
+
     # --- residuals of eq. 7.2 with both inputs -------------------------------------------------------
     def _residual(self, p: HorizonProblem, v: np.ndarray, w: np.ndarray, A: np.ndarray | None):
         s = self.settings
         K = p.K
+        self._follow_speeds(p, v)
         X, Sw, Sv = p.rollout(w, with_jac=True, v=v, with_v_jac=True, a_out=A)
         E = p.errors(X)
         kappa = p.kappa
@@ -178,6 +224,11 @@ class RCLBNMPCLaw:
             dE[:, 0, cols] = cd[:, None] * Sx[:, 0] + sd[:, None] * Sx[:, 1]
             dE[:, 1, cols] = -sd[:, None] * Sx[:, 0] + cd[:, None] * Sx[:, 1]
             dE[:, 2, cols] = Sx[:, 2]
+        # the desired pose of x_j moves on by dt per unit of each earlier speed, along the (piecewise
+        # straight) route: the along error falls by as much, the heading error by the taught heading's slope
+        M = self.dt * np.tril(np.ones((K, K)))
+        dE[:, 0, :K] -= M
+        dE[:, 2, :K] -= p.heading_slope[:, None] * M
         J[:3 * K] = (dE * p.sqrt_q[None, :, None]).reshape(3 * K, 2 * K)
         eye, diff = np.eye(K), np.eye(K) - np.eye(K, k=-1)
         J[3 * K:4 * K, K:] = sr * eye
@@ -196,21 +247,24 @@ class RCLBNMPCLaw:
         why = corridor.contains(ctx.s_m, ctx.e_lat_m, ctx.e_head_rad)
         if why:
             return LawResult(0.0, 0, None, {"learned": False}, v_mps=0.0, stop_reason=f"{why}: stopped")
-        gp = self.model_for(ctx)
+        # the local window is drawn around the speed the law commands (thesis 5.3.2: l from v_cmd), not the
+        # schedule's: this law may drive well below the schedule, and experience there is what it needs
+        v_cmd = float(self._prev[0][min(1, len(self._prev[0]) - 1)]) if self._prev is not None else ctx.v_mps
+        gp = self.model_for(dataclasses.replace(ctx, v_mps=v_cmd))
         p, _ = build_problem(ctx, s, self.dt, gp)
         K, dt = p.K, self.dt
         var = _variance_model(gp, s)
         Sigma0 = initial_covariance(ctx, p, gp, var, s, dt)
         v_max = np.minimum(np.full(K, ctx.v_max_mps), np.maximum(p.v, s.v_min_mps))   # never above the desired
-        lo_lat, hi_lat, head_lim = corridor.at(p.sD[1:])
         if self._prev is not None:
             v = np.clip(np.concatenate([self._prev[0][1:], self._prev[0][-1:]]), s.v_min_mps, v_max)
             w = np.concatenate([self._prev[1][1:], self._prev[1][-1:]])
         else:
             v, w = p.v.copy(), p.w_ref.copy()
+        self._follow_speeds(p, v)
+        lo_lat, hi_lat, head_lim = corridor.at(p.sD[1:])
         alpha = self.alpha
         w_lim_of = np.vectorize(lambda vj: ctx.w_limit_at(max(vj, s.v_min_mps)))
-        direction = np.arctan2(p.sinD[1:], p.cD[1:])
         v_start = v
         # the covariance is propagated once per step, around the warm start; within the solve the lateral
         # sigma follows the speeds to first order (it moves little otherwise, and this keeps the per-step
@@ -245,10 +299,20 @@ class RCLBNMPCLaw:
             return score(dict(v=v, w=w, X=X, E=E, dE=dE, r=r, J=J))
 
         A = np.empty((K, 9))
+        speed_scale = 1.0
+        if alpha > 0:
+            # the fastest of a ladder of speed profiles whose 3-sigma region fits the corridor (with the
+            # band left to the mean) over the whole horizon: uncertainty grows with speed, so this is the
+            # chapter's "slows down while uncertain". One rung up per step at most, as many down as needed;
+            # the SQP then fine-tunes below this cap. Without it the band is infeasible at the scheduled
+            # speed, the slack price dominates the cost and the plan flips between steps.
+            v, w, speed_scale, Sig, sig_start = self._speed_cap(p, v, w, A, gp, var, Sigma0, cap)
+            v_max = np.maximum(np.minimum(v_max, speed_scale * p.v), s.v_min_mps)
+            v_start = v
         cur = evaluate(v, w, A)
         if alpha > 0:
-            Sig, sig_start = horizon_sigmas(p, cur["X"], A, v, w, gp, var, Sigma0, s, dt)
             dvar_dv, dvar_dvprev = variance_speed_derivatives(var, A)
+            direction = np.arctan2(p.sinD[1:], p.cD[1:])
             dsig_v = lateral_sigma_speed_jacobian(cur["X"], Sig, v, direction, sig_start[:, 1], dt, dvar_dv,
                                                   dvar_dvprev)
             cur = score(cur)
@@ -295,6 +359,6 @@ class RCLBNMPCLaw:
         self.last_plan = Plan(w, X, p.D, float(0.5 * r @ r), iters, status == "converged")
         return LawResult(float(w[0]), iters, X[1:],
                          {"cost": float(0.5 * r @ r), "converged": status == "converged", "status": status,
-                          "learned": gp is not None, "violation": slack_used,
+                          "learned": gp is not None, "violation": slack_used, "speed_scale": speed_scale,
                           "sigma_lat_max_m": float(sig[:, 1].max()), "sigma_head_max_rad": float(sig[:, 2].max())},
                          v_mps=float(v[0]))

@@ -7,9 +7,9 @@ and are recombined with the weights of eq. 6.14 (tuning gamma). The mean sequenc
 one of eq. 7.6b (the rollout in nmpc.py, whose Jacobians the solvers use); the sigma points give the
 covariance around it.
 
-Where the GP has no data (trial 1, or a speed never driven there) its variance is its prior: sigma_f^2
-of the store's hyperparameters, or, before any fit, `PriorStd` (the a-priori uncertainty of the
-unicycle model per control period, growing with speed). The GP's latent variance is used plus a small
+The a-priori uncertainty of the unicycle model per control period is `PriorStd` (growing with speed
+and turn rate); it is the variance before any experience (trial 1, or a speed never driven there). With
+a GP, the variance is that prior scaled by the share of the GP's prior variance its posterior keeps. The GP's latent variance is used plus a small
 `process_std` floor for what never repeats; the measurement noise sigma_n, mostly localization jitter
 between consecutive estimates, is not a disturbance of the motion and is left out.
 """
@@ -43,11 +43,18 @@ class DisturbanceVariance:
         self.floor = np.square(np.asarray(process_std, dtype=float))
 
     def __call__(self, A: np.ndarray) -> np.ndarray:
+        std = (np.asarray(self.prior.base) + np.outer(np.abs(A[:, 5]), self.prior.per_mps)
+               + np.outer(np.abs(A[:, 6]), self.prior.per_radps))
         if self.gp is None:
-            std = (np.asarray(self.prior.base) + np.outer(np.abs(A[:, 5]), self.prior.per_mps)
-                   + np.outer(np.abs(A[:, 6]), self.prior.per_radps))
             return std ** 2 + self.floor
-        return self.gp.predict(A)[1] + self.floor
+        # what experience has taught, as the share of the a-priori variance it leaves (the GP's posterior
+        # over its prior sigma_f^2: ~0 next to repeated experiences, 1 far from them), applied to the
+        # a-priori variance at these commands. The GP's own sigma_f^2 is one number for all inputs, so far
+        # from the data it would claim the same uncertainty when creeping as at full speed, and a law that
+        # slows down to be certain would find no speed that helps where it has not driven yet.
+        sf2 = np.array([h.signal_std ** 2 for h in self.gp.hypers])
+        share = np.clip(self.gp.predict(A)[1] / sf2, 0.0, 1.0)
+        return share * std ** 2 + self.floor
 
 
 def sigma_point_step(x: np.ndarray, Sigma: np.ndarray, mu: np.ndarray, var_g: np.ndarray, v: float, w: float,
