@@ -99,6 +99,8 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
         statuses.append(res.info.get("status", ""))
         if u0 is not None and len(times) % keep_every == 0:
             kept.append((ctx, models.model_for(ctx), u0))
+        if algorithm in ("c-lb-nmpc", "rc-lb-nmpc") and len(times) % keep_every == 0 and not res.stop_reason:
+            kept.append((law.last_problem, times[-1]))
         return res
 
     law.angular = timed
@@ -107,15 +109,14 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
     return np.array(times), np.array(sizes), kept, np.array(evals), statuses
 
 
-def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.ndarray):
-    """The same problem in CasADi, solved by IPOPT; returns (solve seconds, optimal cost)."""
+def _casadi_gp_mean(model):
+    """The GP posterior mean as a CasADi expression builder (None: the nominal model, zero)."""
     import casadi as ca
-    K, dt, s = problem.K, problem.dt, problem.s
-    w = ca.SX.sym("w", K)
-    terms = model.mean_terms() if model is not None else None
+    if model is None:
+        return None
+    center, Xc, dims = model.mean_terms()
 
-    def gp_mean(a):
-        center, Xc, dims = terms
+    def mean(a):
         out = []
         for inv_ell, sf2, alpha in dims:
             diff = (ca.repmat(ca.transpose(a - ca.DM(center)), Xc.shape[0], 1) - ca.DM(Xc)) * ca.repmat(
@@ -123,15 +124,20 @@ def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.nda
             k = sf2 * ca.exp(-0.5 * ca.sum2(diff ** 2))
             out.append(ca.dot(k, ca.DM(alpha)))
         return out
+    return mean
 
+
+def _casadi_rollout(problem: HorizonProblem, gp_mean, w, v, D, sD, cD, sinD):
+    """Predicted poses x_1..x_K as in HorizonProblem._rollout, with symbolic w, v and reference."""
+    import casadi as ca
+    K, dt = problem.K, problem.dt
     X = [ca.SX(problem.x0)]
     for j in range(K):
         xj = X[j]
         c, sn = ca.cos(xj[2]), ca.sin(xj[2])
         gx = gy = gth = 0
-        if model is not None:
-            cd, sd = problem.cD[j], problem.sinD[j]
-            dx, dy = xj[0] - problem.D[j, 0], xj[1] - problem.D[j, 1]
+        if gp_mean is not None:
+            dx, dy = xj[0] - D[j][0], xj[1] - D[j][1]
             if j == 0:
                 v_act, w_act = problem.v_prev_act
                 v_prev, w_prev = problem.u_prev
@@ -139,18 +145,30 @@ def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.nda
                 xp = X[j - 1]
                 v_act = (ca.cos(xp[2]) * (xj[0] - xp[0]) + ca.sin(xp[2]) * (xj[1] - xp[1])) / dt
                 w_act = (xj[2] - xp[2]) / dt
-                v_prev, w_prev = problem.v[j - 1], w[j - 1]
-            a = ca.vertcat(problem.sD[j] + cd * dx + sd * dy, -sd * dx + cd * dy, xj[2] - problem.D[j, 2],
-                           v_act, w_act, problem.v[j], w[j], v_prev, w_prev)
+                v_prev, w_prev = v[j - 1], w[j - 1]
+            a = ca.vertcat(sD[j] + cD[j] * dx + sinD[j] * dy, -sinD[j] * dx + cD[j] * dy, xj[2] - D[j][2],
+                           v_act, w_act, v[j], w[j], v_prev, w_prev)
             gx, gy, gth = gp_mean(a)
-        v = problem.v[j]
-        X.append(ca.vertcat(xj[0] + v * dt * c + c * gx - sn * gy, xj[1] + v * dt * sn + sn * gx + c * gy,
+        X.append(ca.vertcat(xj[0] + v[j] * dt * c + c * gx - sn * gy, xj[1] + v[j] * dt * sn + sn * gx + c * gy,
                             xj[2] + w[j] * dt + gth))
+    return X
+
+
+def _route_errors(X, D, cD, sinD, j):
+    dx, dy = X[j][0] - D[j][0], X[j][1] - D[j][1]
+    return [cD[j] * dx + sinD[j] * dy, -sinD[j] * dx + cD[j] * dy, X[j][2] - D[j][2]]
+
+
+def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.ndarray):
+    """The same LB-NMPC problem in CasADi, solved by IPOPT; returns (solve seconds, optimal cost)."""
+    import casadi as ca
+    K, s = problem.K, problem.s
+    w = ca.SX.sym("w", K)
+    D = [[float(x) for x in row] for row in problem.D]
+    X = _casadi_rollout(problem, _casadi_gp_mean(model), w, problem.v, D, problem.sD, problem.cD, problem.sinD)
     res = []
     for j in range(1, K + 1):
-        cd, sd = problem.cD[j], problem.sinD[j]
-        dx, dy = X[j][0] - problem.D[j, 0], X[j][1] - problem.D[j, 1]
-        e = [cd * dx + sd * dy, -sd * dx + cd * dy, X[j][2] - problem.D[j, 2]]
+        e = _route_errors(X, D, problem.cD, problem.sinD, j)
         res += [problem.sqrt_q[i] * e[i] for i in range(3)]
         if j == K:
             term = e[1] + s.lookahead_m * ca.sin(e[2])
@@ -168,6 +186,68 @@ def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.nda
     out = solver(x0=u0, lbx=-w_limit, ubx=w_limit)
     seconds = time.perf_counter() - t0
     return seconds, float(out["f"])
+
+
+def casadi_solve_constrained(lp: dict, model, settings: NMPCSettings):
+    """One step of C-/RC-LB-NMPC (`RCLBNMPCLaw.last_problem`) in CasADi, solved by IPOPT: both speeds
+    free, the desired poses following the planned speeds along the route, the corridor tightened by
+    alpha * sigma with the lateral sigma linear in the speeds as our SQP has it, violations through
+    slacks at the same L1 price. Returns (solve seconds, optimal merit, our merit)."""
+    import casadi as ca
+    p = lp["problem"]
+    path, K, dt, s = p.path, p.K, p.dt, settings
+    v, w = ca.SX.sym("v", K), ca.SX.sym("w", K)
+    sl = ca.SX.sym("slack", 3 * K)
+    # the reference where the planned speeds take the robot (pose_at / tangent_at / curvature, interpolated)
+    heads = np.unwrap(path.poses[:, 2])
+    offset = 2 * np.pi * np.round((p.D[0, 2] - np.interp(p.sD[0], path.s, heads)) / (2 * np.pi))
+    fx = ca.interpolant("rx", "linear", [path.s], path.poses[:, 0])
+    fy = ca.interpolant("ry", "linear", [path.s], path.poses[:, 1])
+    fth = ca.interpolant("rth", "linear", [path.s], heads + offset)
+    fk = ca.interpolant("rk", "linear", [path.s], path.curvature)
+    s_d = [ca.SX(p.sD[0])]
+    for j in range(K):
+        s_d.append(s_d[-1] + v[j] * dt)
+    D, cD, sinD = [], [], []
+    for sj in s_d:
+        D.append([fx(sj), fy(sj), fth(sj)])
+        tx, ty = fx(sj + 0.01) - fx(sj - 0.01), fy(sj + 0.01) - fy(sj - 0.01)   # the segment's direction
+        n = ca.sqrt(tx ** 2 + ty ** 2)
+        cD.append(tx / n)
+        sinD.append(ty / n)
+    X = _casadi_rollout(p, _casadi_gp_mean(model), w, v, D, s_d, cD, sinD)
+    E = [_route_errors(X, D, cD, sinD, j) for j in range(1, K + 1)]
+    res = [p.sqrt_q[i] * E[j][i] for j in range(K) for i in range(3)]
+    res += [math.sqrt(s.r_w) * (w[j] - v[j] * fk(s_d[j])) for j in range(K)]
+    res += [math.sqrt(s.r_v) * (v[j] - p.v[j]) for j in range(K)]
+    res += [math.sqrt(s.r_dw) * (w[j] - (p.u_prev[1] if j == 0 else w[j - 1])) for j in range(K)]
+    res += [math.sqrt(s.r_dv) * (v[j] - (p.u_prev[0] if j == 0 else v[j - 1])) for j in range(K)]
+    res.append(p.sqrt_qt * (E[-1][1] + s.lookahead_m * ca.sin(E[-1][2])))
+    r = ca.vertcat(*res)
+    alpha, cap = lp["alpha"], lp["cap"]
+    sig_lat = ca.fmax(ca.DM(lp["sig"][:, 1]) + ca.mtimes(ca.DM(lp["dsig"]), v - ca.DM(lp["v0"])), 0)
+    g, lbg, ubg = [], [], []
+    for j in range(K):
+        t_lat = ca.fmin(alpha * sig_lat[j], cap[j, 1])
+        t_head = min(alpha * lp["sig"][j, 2], cap[j, 2])
+        g += [E[j][1] + t_lat - sl[j], E[j][1] - t_lat + sl[K + j], E[j][2] + t_head - sl[2 * K + j],
+              E[j][2] - t_head + sl[2 * K + j]]
+        lbg += [-np.inf, lp["lo"][j], -np.inf, -lp["head"][j]]
+        ubg += [lp["hi"][j], np.inf, lp["head"][j], np.inf]
+    merit = 0.5 * ca.dot(r, r) + s.slack_weight * ca.sum1(sl)
+    nlp = {"x": ca.vertcat(v, w, sl), "f": merit, "g": ca.vertcat(*g)}
+    solver = ca.nlpsol("rc", "ipopt", nlp, {"ipopt.print_level": 0, "print_time": 0, "ipopt.tol": 1e-8,
+                                            "ipopt.bound_relax_factor": 0.0,
+                                            "ipopt.sb": "yes"})
+    x0 = np.concatenate([lp["v0"], lp["w0"], np.zeros(3 * K)])
+    lbx = np.concatenate([np.full(K, s.v_min_mps), -lp["w_lim"], np.zeros(3 * K)])
+    ubx = np.concatenate([np.maximum(lp["v_max"], s.v_min_mps), lp["w_lim"], np.full(3 * K, np.inf)])
+    t0 = time.perf_counter()
+    out = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+    seconds = time.perf_counter() - t0
+    if not solver.stats()["success"]:
+        return seconds, None, lp["merit"]
+    return seconds, float(out["f"]), lp["merit"]
 
 
 def run_bench(args) -> dict:
@@ -193,8 +273,8 @@ def run_bench(args) -> dict:
             lb_times = time_controller(cl, hyper, windows, trials, settings, 10 ** 9, "lb-nmpc")[0]
             result["lb_nmpc_solve_ms_p50"] = round(float(np.percentile(lb_times, 50)), 3)
             result["mm_overhead"] = round(float(np.percentile(times, 50) / np.percentile(lb_times, 50) - 1.0), 3)
-        if args.algorithm != "lb-nmpc":
-            log.warning("the CasADi comparison covers the LB-NMPC problem only")
+        if args.algorithm == "mm-lb-nmpc":
+            log.warning("no CasADi comparison for MM-LB-NMPC (its worst case over 2^3 sequences is not written there)")
             return result
         try:
             import casadi  # noqa: F401  (optional benchmark dependency)
@@ -205,6 +285,26 @@ def run_bench(args) -> dict:
             log.warning("no problems kept for the IPOPT comparison (lower --keep-every)")
             return result
         ratios, gaps, ipopt_ms = [], [], []
+        if args.algorithm != "lb-nmpc":
+            # the whole step of ours (ladder, covariance, SQP) against IPOPT's solve of its NLP alone
+            failed = 0
+            for lp, ours_ms in kept:
+                sec, ipopt_merit, ours_merit = casadi_solve_constrained(lp, lp["model"], settings)
+                if ipopt_merit is None:
+                    failed += 1
+                    continue
+                ipopt_ms.append(sec * 1e3)
+                ratios.append(sec * 1e3 / ours_ms)
+                gaps.append((ours_merit - ipopt_merit) / max(abs(ipopt_merit), 1e-12))
+            log.info("IPOPT on %d constrained problems (%d failed): %.1f ms median (ours %.1fx faster); merit gap "
+                     "median %.2e, max %.2e", len(ipopt_ms), failed, np.median(ipopt_ms), np.median(ratios),
+                     np.median(gaps), np.max(gaps))
+            result.update({"casadi_solve_ms_p50": round(float(np.median(ipopt_ms)), 3),
+                           "cost_gap": float(np.mean(gaps)), "cost_gap_median": float(np.median(gaps)),
+                           "cost_gap_max": float(np.max(gaps)),
+                           "casadi_over_ours_time_ratio": round(float(np.median(ratios)), 2),
+                           "casadi_problems": len(ipopt_ms), "casadi_failed": failed})
+            return result
         for ctx, model, u0 in kept:
             problem, w_limit = build_problem(ctx, settings, DT, model)
             t1 = time.perf_counter()

@@ -191,7 +191,7 @@ class RCLBNMPCLaw:
             X, _ = p.rollout(wk, with_jac=False, v=vk, a_out=A)
             Sig, sig = horizon_sigmas(p, X, A, vk, wk, gp, var, Sigma0, s, self.dt)
             t = self.alpha * sig[1:]
-            fits = bool(np.all(t[:, 0] <= cap[1:, 1]) and np.all(t[:, 1] <= cap[1:, 2])) if len(t) else True
+            fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2]))   # lateral, heading
             return fits, (vk, wk, ladder[k], Sig, sig)
 
         k = max(k_prev - 1, 0)                 # try one rung faster than last step first
@@ -309,6 +309,7 @@ class RCLBNMPCLaw:
             v, w, speed_scale, Sig, sig_start = self._speed_cap(p, v, w, A, gp, var, Sigma0, cap)
             v_max = np.maximum(np.minimum(v_max, speed_scale * p.v), s.v_min_mps)
             v_start = v
+        w_start = w
         cur = evaluate(v, w, A)
         if alpha > 0:
             dvar_dv, dvar_dvprev = variance_speed_derivatives(var, A)
@@ -356,6 +357,10 @@ class RCLBNMPCLaw:
         slack_used = cur["viol"]
         X = p.rollout(w, with_jac=False, v=v)[0]
         self._prev = (v, w)
+        # what this step's NLP was, for re-solving it elsewhere (bench: the same problem in CasADi/IPOPT)
+        self.last_problem = dict(problem=p, v0=v_start, w0=w_start, sig=sig_start, dsig=dsig_v, cap=cap,
+                                 lo=lo_lat, hi=hi_lat, head=head_lim, v_max=v_max, w_lim=w_lim_of(v),
+                                 alpha=alpha, merit=cur["merit"], model=gp)
         self.last_plan = Plan(w, X, p.D, float(0.5 * r @ r), iters, status == "converged")
         return LawResult(float(w[0]), iters, X[1:],
                          {"cost": float(0.5 * r @ r), "converged": status == "converged", "status": status,
