@@ -155,7 +155,9 @@ class RCLBNMPCLaw:
         self.name = "rc-lb-nmpc" if self.alpha > 0 else "c-lb-nmpc"
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
         self._qp: CorridorQP | None = None
+        self._rung = 0                       # the speed ladder's rung of the last step
         self.last_plan: Plan | None = None
+        self.last_problem: dict | None = None
 
     @staticmethod
     def _follow_speeds(p: HorizonProblem, v: np.ndarray) -> None:
@@ -180,7 +182,7 @@ class RCLBNMPCLaw:
         """(v, w, scale, covariances, route sigmas) of the fastest rung that fits, starting from last step's."""
         s = self.settings
         ladder = self.SPEED_LADDER
-        k_prev = getattr(self, "_rung", 0) if self._prev is not None else 0
+        k_prev = self._rung if self._prev is not None else 0
         kappa0 = p.kappa.copy()
         v0 = np.maximum(v, 1e-3)
 
