@@ -15,9 +15,11 @@ acceptance of gauss_newton.py: a step that raises the worst-case cost is shorten
 
 C-/RC-LB-NMPC (eq. 7.2-7.6): linear and angular speeds are both optimized; the cost weighs the
 errors of the mean sequence and the deviation from the desired inputs (scheduled speed, route turn
-rate); the lateral and heading errors of the mean must stay inside the corridor tightened by
-alpha * sigma (eq. 7.4; alpha = 0 is C-LB-NMPC); speeds and rates stay inside the actuator limits
-(eq. 7.5). Solved as SQP: the covariance is propagated once per step around the warm start, and each
+rate), the errors measured against the route poses the planned speeds reach; the lateral and heading
+errors of the mean must stay inside the corridor tightened by alpha * sigma (eq. 7.4; alpha = 0 is
+C-LB-NMPC); speeds and rates stay inside the actuator limits (eq. 7.5). RC first caps the speeds with
+the fastest of a ladder of slowed-down profiles whose 3-sigma region fits the corridor (`_speed_cap`).
+Solved as SQP: the covariance is propagated once per step around that profile, and each
 iteration linearizes the rollout (analytic sensitivities for v and w) and the lateral sigma's dependence
 on speed and solves the QP with one warm-started OSQP workspace (sqp_qp.py); violating a tightened limit
 is possible only through a slack with a heavy L1 price, so the QP is always feasible and the law says

@@ -9,8 +9,8 @@ covariance around it.
 
 The a-priori uncertainty of the unicycle model per control period is `PriorStd` (growing with speed
 and turn rate); it is the variance before any experience (trial 1, or a speed never driven there). With
-a GP, the variance is that prior scaled by the share of the GP's prior variance its posterior keeps. The GP's latent variance is used plus a small
-`process_std` floor for what never repeats; the measurement noise sigma_n, mostly localization jitter
+a GP, the variance is that prior scaled by the share of the GP's prior variance its (latent) posterior
+keeps, plus a small `process_std` floor for what never repeats; the measurement noise sigma_n, mostly localization jitter
 between consecutive estimates, is not a disturbance of the motion and is left out.
 """
 from __future__ import annotations
