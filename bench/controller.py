@@ -132,6 +132,11 @@ def _casadi_rollout(problem: HorizonProblem, gp_mean, w, v, D, sD, cD, sinD):
     import casadi as ca
     K, dt = problem.K, problem.dt
     X = [ca.SX(problem.x0)]
+    vb, wb = v, w
+    if problem.lag is not None:     # the drive's lag: the robot moves at L u + c xi0 (actuator.py)
+        Lv, cv, Lw, cw = problem.lag
+        vb = ca.mtimes(ca.DM(Lv), ca.vertcat(*[v[j] for j in range(K)])) + ca.DM(cv)
+        wb = ca.mtimes(ca.DM(Lw), ca.vertcat(*[w[j] for j in range(K)])) + ca.DM(cw)
     for j in range(K):
         xj = X[j]
         c, sn = ca.cos(xj[2]), ca.sin(xj[2])
@@ -149,8 +154,8 @@ def _casadi_rollout(problem: HorizonProblem, gp_mean, w, v, D, sD, cD, sinD):
             a = ca.vertcat(sD[j] + cD[j] * dx + sinD[j] * dy, -sinD[j] * dx + cD[j] * dy, xj[2] - D[j][2],
                            v_act, w_act, v[j], w[j], v_prev, w_prev)
             gx, gy, gth = gp_mean(a)
-        X.append(ca.vertcat(xj[0] + v[j] * dt * c + c * gx - sn * gy, xj[1] + v[j] * dt * sn + sn * gx + c * gy,
-                            xj[2] + w[j] * dt + gth))
+        X.append(ca.vertcat(xj[0] + vb[j] * dt * c + c * gx - sn * gy, xj[1] + vb[j] * dt * sn + sn * gx + c * gy,
+                            xj[2] + wb[j] * dt + gth))
     return X
 
 
@@ -206,8 +211,11 @@ def casadi_solve_constrained(lp: dict, model, settings: NMPCSettings):
     fth = ca.interpolant("rth", "linear", [path.s], heads + offset)
     fk = ca.interpolant("rk", "linear", [path.s], path.curvature)
     s_d = [ca.SX(p.sD[0])]
+    vb = v
+    if p.lag is not None:           # progress at the speeds the robot reaches (the drive's lag)
+        vb = ca.mtimes(ca.DM(p.lag[0]), ca.vertcat(*[v[j] for j in range(K)])) + ca.DM(p.lag[1])
     for j in range(K):
-        s_d.append(s_d[-1] + v[j] * dt)
+        s_d.append(s_d[-1] + vb[j] * dt)
     D, cD, sinD = [], [], []
     for sj in s_d:
         D.append([fx(sj), fy(sj), fth(sj)])

@@ -152,6 +152,7 @@ class NMPCSection:
     prior_std_per_radps: tuple[float, float, float] = (0.002, 0.004, 0.015)
     min_band_fraction: float = 0.2
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
+    actuator_tau_s: tuple[float, float] = (0.0, 0.0)   # the drive's lag (v, w), s; 0 = eq. 5.26 as is
 
 
 @dataclass(frozen=True, kw_only=True)

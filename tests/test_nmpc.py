@@ -1,5 +1,6 @@
 """LB-NMPC core against independent references: finite-horizon LQR on linear models, finite-difference
 Jacobians, and the thesis's illustrative example (eq. 5.22-5.25)."""
+import dataclasses
 import math
 
 import numpy as np
@@ -127,8 +128,9 @@ def test_jacobian_with_a_learned_model_matches_finite_differences():
     gp = GaussianProcess(X, Y, [SEHyper(np.array([1.5, .2, .1, .3, .4, .3, .35, .3, .4]), 0.02, 0.001)] * 3)
     pose = path.pose_at(5.3) + np.array([0.0, 0.05, 0.02])
     ctx = ctx_at(path, pose, prev_cmd=(0.5, 0.1), model_prev=pose - np.array([0.05, 0.0, 0.01]))
-    for model in (None, gp):
-        problem, _ = build_problem(ctx, NMPCSettings(r_dw=1.0, q_terminal=50.0), 0.1, model)
+    ctx = dataclasses.replace(ctx, xi_now=(0.4, 0.05))
+    for model, tau in ((None, (0.0, 0.0)), (gp, (0.0, 0.0)), (None, (0.45, 0.4)), (gp, (0.45, 0.4))):
+        problem, _ = build_problem(ctx, NMPCSettings(r_dw=1.0, q_terminal=50.0, actuator_tau_s=tau), 0.1, model)
         w = 0.2 * rng.normal(size=10)
         _, J = problem.residual(w)
         h = 1e-6

@@ -1,6 +1,7 @@
 """Sigma-point prediction, MM-LB-NMPC and (R)C-LB-NMPC against independent references: Monte Carlo
 for the covariance, finite differences for the new sensitivities, plain LB-NMPC where the extensions
 must reduce to it, and the corridor the constrained law must keep its prediction in."""
+import dataclasses
 import math
 
 import numpy as np
@@ -58,9 +59,9 @@ def test_speed_sensitivities_match_finite_differences():
     Y = np.column_stack([0.01 * np.sin(X[:, 0]), 0.01 * np.cos(3 * X[:, 5]), 0.02 * np.tanh(2 * X[:, 5] - X[:, 6])])
     gp = GaussianProcess(X, Y, [SEHyper(np.array([2.0, .2, .1, .3, .4, .3, .35, .3, .4]), 0.02, 0.001)] * 3)
     pose = path.pose_at(11.0) + np.array([0.0, 0.05, 0.02])
-    ctx = ctx_for(path, pose)
-    for model in (None, gp):
-        p, _ = build_problem(ctx, NMPCSettings(), DT, model)
+    ctx = dataclasses.replace(ctx_for(path, pose), xi_now=(0.6, 0.1))
+    for model, tau in ((None, (0.0, 0.0)), (gp, (0.0, 0.0)), (gp, (0.45, 0.4))):
+        p, _ = build_problem(ctx, NMPCSettings(actuator_tau_s=tau), DT, model)
         w = p.w_ref + 0.1 * rng.normal(size=p.K)
         v = p.v + 0.1 * rng.normal(size=p.K)
         _, _, Sv = p.rollout(w, with_jac=True, v=v, with_v_jac=True)
@@ -75,20 +76,23 @@ def test_constrained_residual_jacobian_matches_finite_differences_with_the_refer
     rng = np.random.default_rng(5)
     path = arc_path()
     ctx = ctx_for(path, path.pose_at(9.5) + np.array([0.0, 0.04, 0.03]), corridor=Corridor(path.s, 0.3, 0.5))
-    law = RCLBNMPCLaw(NMPCSettings(), DT)
-    p, _ = build_problem(ctx, NMPCSettings(), DT, None)
-    v = 0.5 + 0.1 * rng.random(p.K)           # well below the scheduled 0.8 m/s: the reference moves back
-    w = p.w_ref + 0.1 * rng.normal(size=p.K)
-    _, _, _, r, J = law._residual(p, v, w, None)
-    h = 1e-6
-    fd = []
-    for e in np.eye(2 * p.K):
-        rp = law._residual(p, v + h * e[:p.K], w + h * e[p.K:], None)[3]
-        rm = law._residual(p, v - h * e[:p.K], w - h * e[p.K:], None)[3]
-        fd.append((rp - rm) / (2 * h))
-    fd = np.array(fd).T
-    # the curvature-rate terms (kappa's own change with the reference, w_ref's dependence) are left out
-    np.testing.assert_allclose(J, fd, atol=2e-3 * np.abs(fd).max())
+    ctx = dataclasses.replace(ctx, xi_now=(0.7, 0.05))
+    for tau in ((0.0, 0.0), (0.45, 0.4)):       # without and with the drive's lag
+        settings = NMPCSettings(actuator_tau_s=tau)
+        law = RCLBNMPCLaw(settings, DT)
+        p, _ = build_problem(ctx, settings, DT, None)
+        v = 0.5 + 0.1 * rng.random(p.K)           # well below the scheduled 0.8 m/s: the reference moves back
+        w = p.w_ref + 0.1 * rng.normal(size=p.K)
+        _, _, _, r, J = law._residual(p, v, w, None)
+        h = 1e-6
+        fd = []
+        for e in np.eye(2 * p.K):
+            rp = law._residual(p, v + h * e[:p.K], w + h * e[p.K:], None)[3]
+            rm = law._residual(p, v - h * e[:p.K], w - h * e[p.K:], None)[3]
+            fd.append((rp - rm) / (2 * h))
+        fd = np.array(fd).T
+        # the curvature-rate terms (kappa's own change with the reference, w_ref's dependence) are left out
+        np.testing.assert_allclose(J, fd, atol=2e-3 * np.abs(fd).max())
 
 
 def test_lateral_sigma_speed_jacobian_matches_finite_differences_of_the_propagation():

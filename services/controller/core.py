@@ -11,7 +11,7 @@ class ControllerCore:
     def __init__(self, path: Path, tracker: PathTracker, period_s: float):
         self.path = path
         self.tracker = tracker
-        self.builder = ExperienceBuilder(path, period_s)
+        self.builder = ExperienceBuilder(path, period_s, lag=tracker.lag)
 
     def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, Observation | None]:
         """One control step at robot tick `tick`: the command to apply now, and the disturbance

@@ -12,7 +12,9 @@ between robots on the same route:
   (thesis 5.3.1), so slip is seen against the ground, not the wheels.
 - u_k, u_{k-1}: the commanded (v, w).
 - g: the one-period residual of the nominal unicycle (eq. 5.26), position part rotated into the robot's
-  body frame at k: (along, left, heading) metres/radians per period. Body-frame residuals are
+  body frame at k: (along, left, heading) metres/radians per period. With a drive lag configured
+  (actuator.py) the unicycle moves at the lag's response to the commands, as in the NMPC's prediction:
+  the GP must learn what that model misses, not what it already knows. Body-frame residuals are
   invariant to where the route happens to point, so only the place and the motion explain them.
 """
 from __future__ import annotations
@@ -25,6 +27,7 @@ import numpy as np
 
 from common import se2
 from common.path import Path
+from services.controller.actuator import ActuatorLag
 
 A_NAMES = ("s_m", "e_lat_m", "e_head_rad", "v_act_mps", "w_act_radps", "v_cmd_mps", "w_cmd_radps",
            "v_cmd_prev_mps", "w_cmd_prev_radps")
@@ -74,9 +77,10 @@ class ExperienceBuilder:
     """Pairs estimates (by capture tick) with the commands applied at those ticks. An observation needs
     three consecutive estimates and the two commands in between; gaps (dropouts) simply yield nothing."""
 
-    def __init__(self, path: Path, dt: float, min_speed_mps: float = 0.05):
+    def __init__(self, path: Path, dt: float, min_speed_mps: float = 0.05, lag: ActuatorLag = ActuatorLag()):
         self.path = path
         self.dt = dt
+        self.lag = lag
         self.min_speed = min_speed_mps
         self._est: deque[_Estimate] = deque(maxlen=3)
         self._cmd: dict[int, tuple[float, float]] = {}
@@ -86,7 +90,7 @@ class ExperienceBuilder:
 
     def add_command(self, tick: int, v: float, w: float) -> None:
         self._cmd[tick] = (v, w)
-        for old in [t for t in self._cmd if t < tick - 50]:
+        for old in [t for t in self._cmd if t < tick - max(50, self.lag.history_periods + 1)]:
             del self._cmd[old]
 
     def add_estimate(self, tick: int, stamp_s: float, vertex: int, T_vertex_robot) -> Observation | None:
@@ -108,7 +112,8 @@ class ExperienceBuilder:
         v_act, w_act = body_velocity(e0.pose, e1.pose, self.dt)
         if abs(u1[0]) < self.min_speed and abs(v_act) < self.min_speed:
             return None  # standing still teaches nothing about driving
-        g = body_residual(e1.pose, u1[0], u1[1], e2.pose, self.dt)
+        vb, wb = self.lag.step(self.lag.state_before(e1.tick, self.command_at), u1)[0] if self.lag.active else u1
+        g = body_residual(e1.pose, vb, wb, e2.pose, self.dt)
         a = (*e1.route, v_act, w_act, u1[0], u1[1], u0[0], u0[1])
         return Observation(stamp_s=e2.stamp_s, vertex=e1.vertex, v_cmd_mps=u1[0],
                            a=tuple(float(x) for x in a), g=tuple(float(x) for x in g))

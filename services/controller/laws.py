@@ -34,6 +34,10 @@ class StepContext:
     # since (oldest first) and the one applied just before the capture, when known
     delayed_cmds: tuple[tuple[float, float], ...] = ()
     cmd_before_capture: tuple[float, float] | None = None
+    # the (v, w) the drive has reached (actuator.py's lag model, from the commands sent) at the start of
+    # the capture's period and of this one
+    xi_capture: tuple[float, float] = (0.0, 0.0)
+    xi_now: tuple[float, float] = (0.0, 0.0)
     pose_cov: np.ndarray | None = None   # 3x3 covariance of `pose` (route frame), from the localizer
     corridor: Corridor | None = None   # per-vertex limits (thesis 7.3), for the constrained laws
     v_max_mps: float = float("inf")      # the robot's speed limit (the constrained laws choose v)

@@ -31,6 +31,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from services.controller.actuator import ActuatorLag
 from services.controller.gauss_newton import gauss_newton
 from services.controller.laws import LawResult, StepContext
 
@@ -73,6 +74,8 @@ class NMPCSettings:
     # the horizon is infeasible whenever uncertainty is high and the slack drives the solution)
     min_band_fraction: float = 0.2
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
+    # the drive's first-order lag (v, w) in seconds, from a step test (actuator.py); 0: eq. 5.26 as is
+    actuator_tau_s: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self):
         for name in ("prior_std_base", "prior_std_per_mps", "prior_std_per_radps", "process_std"):   # TOML gives lists
@@ -80,6 +83,13 @@ class NMPCSettings:
             if len(value) != 3 or min(value) < 0:
                 raise ValueError(f"{name}: three non-negative values (along, lateral, heading)")
             object.__setattr__(self, name, value)
+        tau = tuple(float(x) for x in self.actuator_tau_s)
+        if len(tau) != 2 or min(tau) < 0:
+            raise ValueError("actuator_tau_s: two non-negative time constants (v, w) in seconds")
+        object.__setattr__(self, "actuator_tau_s", tau)
+
+    def lag(self, dt: float) -> ActuatorLag:
+        return ActuatorLag(self.actuator_tau_s[0], self.actuator_tau_s[1], dt)
         if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
                 self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw, self.q_terminal, self.lookahead_m) < 0:
             raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
@@ -105,7 +115,8 @@ class HorizonProblem:
 
     def __init__(self, x0, desired: np.ndarray, s_desired: np.ndarray, v: np.ndarray, w_ref: np.ndarray,
                  dt: float, settings: NMPCSettings, model: DisturbanceModel | None,
-                 v_prev_act: tuple[float, float], u_prev: tuple[float, float], tangent: np.ndarray | None = None):
+                 v_prev_act: tuple[float, float], u_prev: tuple[float, float], tangent: np.ndarray | None = None,
+                 lag: ActuatorLag | None = None, xi0: tuple[float, float] = (0.0, 0.0)):
         self.x0 = np.asarray(x0, dtype=float)
         self.D = desired            # (K+1, 3): D[0] is the route pose at the robot, D[j] the desired x_j
         self.sD = s_desired         # (K+1,) arc length of D[j]
@@ -127,6 +138,18 @@ class HorizonProblem:
         self.cD = np.cos(direction)
         self.sinD = np.sin(direction)
         self._memo: list[tuple] = []   # the last rollouts: a solver's final iterate is usually among them
+        # the drive's lag (actuator.py): the robot moves at ubar = L u + c xi0 per axis, not at u
+        self.lag = None
+        if lag is not None and lag.active:
+            Lv, cv, Lw, cw = lag.matrices(self.K)
+            self.lag = (Lv, cv * xi0[0], Lw, cw * xi0[1])
+
+    def effective(self, v: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """The speeds the robot moves at over each period under commands (v, w)."""
+        if self.lag is None:
+            return v, w
+        Lv, cv, Lw, cw = self.lag
+        return Lv @ v + cv, None if w is None else Lw @ w + cw
 
     def rollout(self, w: np.ndarray, with_jac: bool, v: np.ndarray | None = None, with_v_jac: bool = False,
                 a_out: np.ndarray | None = None):
@@ -162,6 +185,8 @@ class HorizonProblem:
         xp = yp = thp = cp = sp = 0.0
         D, sD, cD, sinD = self.D, self.sD, self.cD, self.sinD
         v_all = self.v if v is None else v
+        vb_all, wb_all = self.effective(v_all, np.asarray(w, dtype=float))
+        lag = self.lag
         for j in range(K):
             cd, sd = cD[j], sinD[j]
             dx, dy = xj - D[j, 0], yj - D[j, 1]
@@ -188,17 +213,19 @@ class HorizonProblem:
             if model is None:   # the inputs still matter to a prior that depends on the commands
                 a[5], a[6] = v, wj
             a_out[j] = a
-            xn = xj + v * dt * c + c * gx - s * gy
-            yn = yj + v * dt * s + s * gx + c * gy
-            thn = thj + wj * dt + gth
+            vb, wb = float(vb_all[j]), float(wb_all[j])   # what the robot moves at (= u without a lag)
+            xn = xj + vb * dt * c + c * gx - s * gy
+            yn = yj + vb * dt * s + s * gx + c * gy
+            thn = thj + wb * dt + gth
             X[j + 1] = (xn, yn, thn)
             if with_jac or with_v_jac:
                 # the nominal step and the rotation of g by theta_j
-                Aj = np.array([[1.0, 0.0, -v * dt * s - s * gx - c * gy],
-                               [0.0, 1.0, v * dt * c + c * gx - s * gy],
+                Aj = np.array([[1.0, 0.0, -vb * dt * s - s * gx - c * gy],
+                               [0.0, 1.0, vb * dt * c + c * gx - s * gy],
                                [0.0, 0.0, 1.0]])
-                b = np.array([0.0, 0.0, dt])
-                bv = np.array([dt * c, dt * s, 0.0])
+                # the nominal input effect; with a lag it reaches back to every earlier command (added below)
+                b = np.array([0.0, 0.0, 0.0 if lag else dt])
+                bv = np.zeros(3) if lag else np.array([dt * c, dt * s, 0.0])
                 Cp = None
                 if model is not None:
                     Rf = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -218,10 +245,14 @@ class HorizonProblem:
                     Sn += Cp @ SS[j - 1]
                 if with_jac:
                     Sn[:, j] += b
+                    if lag:
+                        Sn[2, :j + 1] += dt * lag[2][j, :j + 1]
                     if Cp is not None:
                         Sn[:, j - 1] += RDg[:, 8]
                 if with_v_jac:
                     Sn[:, n_w + j] += bv
+                    if lag:
+                        Sn[:2, n_w:n_w + j + 1] += np.outer([dt * c, dt * s], lag[0][j, :j + 1])
                     if Cp is not None:
                         Sn[:, n_w + j - 1] += RDg[:, 7]
                 SS[j + 1] = Sn
@@ -286,25 +317,27 @@ class HorizonProblem:
 
 
 def _propagate_delay(ctx: StepContext, dt: float, model: DisturbanceModel | None,
-                     v_prev: tuple[float, float]):
+                     v_prev: tuple[float, float], lag: ActuatorLag):
     """Eq. 7.12 (its mean): carry the estimate, captured D periods ago, forward through the D commands
     applied since, with the same model the horizon uses, so that the problem starts from now and its
     first a-vector pairs the right pose, velocities and commands (as experiences were built)."""
     x = np.array(ctx.pose, dtype=float)
     u_before = ctx.cmd_before_capture if ctx.cmd_before_capture is not None else ctx.delayed_cmds[0]
     hint = ctx.vertex
-    trace = []      # (x, a, v, w) per delayed period: the robust laws carry the covariance along too
+    xi = ctx.xi_capture
+    trace = []      # (x, a, vbar, wbar) per delayed period: the robust laws carry the covariance along too
     for v_i, w_i in ctx.delayed_cmds:
         g = np.zeros(3)
         pr = ctx.path.project(x, hint)
         hint = pr.vertex
         a = np.array([pr.distance_m, pr.lateral_m, pr.heading_rad, *v_prev, v_i, w_i, *u_before])
-        trace.append((x.copy(), a, v_i, w_i))
+        (vb, wb), xi = lag.step(xi, (v_i, w_i))
+        trace.append((x.copy(), a, vb, wb))
         if model is not None:
             g = model.mean_and_grad(a)[0]
         c, s = math.cos(x[2]), math.sin(x[2])
-        x_next = np.array([x[0] + v_i * dt * c + c * g[0] - s * g[1], x[1] + v_i * dt * s + s * g[0] + c * g[1],
-                           x[2] + w_i * dt + g[2]])
+        x_next = np.array([x[0] + vb * dt * c + c * g[0] - s * g[1], x[1] + vb * dt * s + s * g[0] + c * g[1],
+                           x[2] + wb * dt + g[2]])
         v_prev = ((c * (x_next[0] - x[0]) + s * (x_next[1] - x[1])) / dt, (x_next[2] - x[2]) / dt)
         u_before = (v_i, w_i)
         x = x_next
@@ -325,14 +358,17 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
         v_prev = ctx.cmd_before_capture or ctx.prev_cmd   # no earlier estimate: as commanded
     x0, s0, u_prev = np.array(ctx.pose, dtype=float), ctx.s_m, ctx.prev_cmd
     trace = []
+    lag = settings.lag(dt)
     if ctx.delayed_cmds and settings.delay_compensation:
-        x0, s0, v_prev, u_prev, trace = _propagate_delay(ctx, dt, model, v_prev)
+        x0, s0, v_prev, u_prev, trace = _propagate_delay(ctx, dt, model, v_prev, lag)
     s_d = np.empty(K + 1)
     v = np.empty(K)
     s_d[0] = s0
+    xi = ctx.xi_now
     for j in range(K):
         v[j] = ctx.v_mps if j == 0 else ctx.speed_at(s_d[j])
-        s_d[j + 1] = s_d[j] + v[j] * dt
+        (vb, _), xi = lag.step(xi, (v[j], 0.0))
+        s_d[j + 1] = s_d[j] + vb * dt     # where the robot gets to at these speeds (its lag included)
     desired = path.pose_at(s_d)          # taught headings: what the heading error is measured against
     tangent = path.tangent_at(s_d)       # route direction: what along/lateral errors are measured along
     kappa = np.interp(s_d[:-1], path.s, path.curvature)
@@ -341,7 +377,8 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
     # keep headings continuous with the desired ones (no 2*pi jumps inside the rollout)
     x0[2] = desired[0, 2] + math.remainder(x0[2] - desired[0, 2], 2 * math.pi)
     desired[:, 2] = desired[0, 2] + np.unwrap(desired[:, 2] - desired[0, 2])
-    problem = HorizonProblem(x0, desired, s_d, v, w_ref, dt, settings, model, v_prev, u_prev, tangent)
+    problem = HorizonProblem(x0, desired, s_d, v, w_ref, dt, settings, model, v_prev, u_prev, tangent,
+                             lag, ctx.xi_now)
     problem.delay_trace = trace
     problem.kappa = kappa
     problem.path = path

@@ -102,7 +102,8 @@ class ControllerService(Service):
                 tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps,
                                       loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2,
                                       ic_vertices=ic_vertices, schedule=schedule,
-                                      corridor=self._corridor(req.path_id, path))
+                                      corridor=self._corridor(req.path_id, path),
+                                      lag=self.cfg.nmpc.lag(self.cfg.period_s))
             except (OSError, ValueError) as exc:
                 return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
             self.core = ControllerCore(path, tracker, self.cfg.period_s)

@@ -71,7 +71,8 @@ def horizon_sigmas(problem: HorizonProblem, X: np.ndarray, A: np.ndarray, v: np.
                    var: DisturbanceVariance, Sigma0: np.ndarray, s: NMPCSettings, dt: float):
     """Covariances (K+1, 3, 3) and the route-frame standard deviations (K, 3) of x_1..x_K."""
     G, V = _disturbances(gp, A, var)
-    Sig = propagate(X, A, G, V, v, w, Sigma0, dt, s.sp_gamma)
+    vb, wb = problem.effective(v, w)          # the robot moves at these (the drive's lag)
+    Sig = propagate(X, A, G, V, vb, wb, Sigma0, dt, s.sp_gamma)
     direction = np.arctan2(problem.sinD[1:], problem.cD[1:])
     return Sig, route_sigmas(Sig, direction)
 
@@ -167,7 +168,7 @@ class RCLBNMPCLaw:
         scheduled speed, a plan that slows down would be judged against route points ahead of it: in a
         turn their direction differs from the robot's by the turn angle still to come, a phantom lateral
         and heading error that the corridor limits then fight (the law slowed and sped up in turns)."""
-        s_d = p.sD[0] + np.concatenate([[0.0], np.cumsum(v) * p.dt])
+        s_d = p.sD[0] + np.concatenate([[0.0], np.cumsum(p.effective(v)[0]) * p.dt])
         if np.array_equal(s_d, p.sD) and hasattr(p, "heading_slope"):
             return
         D = p.path.pose_at(s_d)
@@ -231,6 +232,8 @@ class RCLBNMPCLaw:
         # the desired pose of x_j moves on by dt per unit of each earlier speed, along the (piecewise
         # straight) route: the along error falls by as much, the heading error by the taught heading's slope
         M = self.dt * np.tril(np.ones((K, K)))
+        if p.lag is not None:
+            M = M @ p.lag[0]              # ... of each earlier speed the robot reaches (the drive's lag)
         dE[:, 0, :K] -= M
         dE[:, 2, :K] -= p.heading_slope[:, None] * M
         J[:3 * K] = (dE * p.sqrt_q[None, :, None]).reshape(3 * K, 2 * K)
@@ -318,8 +321,8 @@ class RCLBNMPCLaw:
         if alpha > 0:
             dvar_dv, dvar_dvprev = variance_speed_derivatives(var, A)
             direction = np.arctan2(p.sinD[1:], p.cD[1:])
-            dsig_v = lateral_sigma_speed_jacobian(cur["X"], Sig, v, direction, sig_start[:, 1], dt, dvar_dv,
-                                                  dvar_dvprev)
+            dsig_v = lateral_sigma_speed_jacobian(cur["X"], Sig, p.effective(v)[0], direction, sig_start[:, 1], dt,
+                                                  dvar_dv, dvar_dvprev)
             cur = score(cur)
         sig0 = sig_start[0]
         if alpha > 0 and min(hi_lat[0] - lo_lat[0] - 2 * alpha * sig0[1], head_lim[0] - alpha * sig0[2]) <= 0:

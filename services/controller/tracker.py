@@ -17,6 +17,7 @@ import numpy as np
 from common import se2
 from common.messages import LocState
 from common.path import Path
+from services.controller.actuator import ActuatorLag
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
@@ -51,8 +52,10 @@ class Decision:
 class PathTracker:
     def __init__(self, path: Path, law: SteeringLaw, limits: TrackerLimits, *, speed_mps: float,
                  loc_timeout_s: float = 0.5, stop_decel_mps2: float = 0.4, ic_vertices: int = 0,
-                 schedule: np.ndarray | None = None, corridor: Corridor | None = None):
+                 schedule: np.ndarray | None = None, corridor: Corridor | None = None,
+                 lag: ActuatorLag = ActuatorLag()):
         self.path = path
+        self.lag = lag
         self.law = law
         self.limits = limits
         self.speed_mps = min(speed_mps, limits.v_max_mps)
@@ -146,14 +149,20 @@ class PathTracker:
         law_lat, law_head = self._smoothed(vertex, lat, head)
         v = self.speed_at(dist)
         delayed, before = (), None
-        if tick is not None and command_at is not None and tick > last.capture_tick:
-            cmds = [command_at(t) for t in range(last.capture_tick, tick)]
-            if all(c is not None for c in cmds):
-                delayed, before = tuple(cmds), command_at(last.capture_tick - 1)
+        xi_now = xi_capture = self._last_cmd        # without a command history: the drive has settled
+        if tick is not None and command_at is not None:
+            if tick > last.capture_tick:
+                cmds = [command_at(t) for t in range(last.capture_tick, tick)]
+                if all(c is not None for c in cmds):
+                    delayed, before = tuple(cmds), command_at(last.capture_tick - 1)
+            if self.lag.active:
+                xi_now = self.lag.state_before(tick, command_at)
+                xi_capture = self.lag.state_before(last.capture_tick, command_at) if delayed else xi_now
         ctx = StepContext(now_s=now_s, path=self.path, vertex=vertex, pose=pose, s_m=dist, e_lat_m=law_lat,
                           e_head_rad=law_head, v_mps=v, speed_at=self.speed_at, prev_cmd=self._last_cmd,
                           prev_pose=prev_pose, w_limit=self.limits.w_limit(v), w_limit_at=self.limits.w_limit,
-                          delayed_cmds=delayed, cmd_before_capture=before, pose_cov=self._route_cov(last),
+                          delayed_cmds=delayed, cmd_before_capture=before, xi_capture=xi_capture, xi_now=xi_now,
+                          pose_cov=self._route_cov(last),
                           corridor=self.corridor, v_max_mps=self.limits.v_max_mps)
         reason = ""
         try:

@@ -1,0 +1,86 @@
+"""The drive-lag model (actuator.py) against a finely integrated continuous first-order lag, and the
+experiences it changes."""
+import math
+
+import numpy as np
+import pytest
+
+from common.path import Path
+from services.controller.actuator import ActuatorLag
+from services.controller.experience import ExperienceBuilder
+
+DT = 0.1
+
+
+def continuous_lag(tau: float, xi0: float, u: np.ndarray, substeps: int = 20000):
+    """xi' = (u - xi) / tau under a held command per period, by small exact-exponential substeps; returns
+    the mean of xi over each period and xi at its end."""
+    h = DT / substeps
+    decay = math.exp(-h / tau)
+    means, xi = [], xi0
+    for uk in u:
+        acc = 0.0
+        for _ in range(substeps):
+            nxt = uk + (xi - uk) * decay
+            acc += 0.5 * (xi + nxt) * h
+            xi = nxt
+        means.append(acc / DT)
+    return np.array(means), xi
+
+
+def test_period_averages_match_a_continuous_first_order_lag():
+    rng = np.random.default_rng(0)
+    lag = ActuatorLag(0.45, 0.4, DT)
+    K = 8
+    u_v, u_w = rng.uniform(0, 2, K), rng.uniform(-1, 1, K)
+    Lv, cv, Lw, cw = lag.matrices(K)
+    for L, c, tau, u, xi0 in ((Lv, cv, 0.45, u_v, 0.7), (Lw, cw, 0.4, u_w, -0.3)):
+        ref, _ = continuous_lag(tau, xi0, u)
+        np.testing.assert_allclose(L @ u + c * xi0, ref, atol=1e-6)
+    # step() agrees with the matrices period by period
+    xi = (0.7, -0.3)
+    for k in range(K):
+        avg, xi = lag.step(xi, (u_v[k], u_w[k]))
+        assert avg[0] == pytest.approx((Lv @ u_v + cv * 0.7)[k]) and avg[1] == pytest.approx((Lw @ u_w + cw * -0.3)[k])
+    ref_end = continuous_lag(0.45, 0.7, u_v)[1]
+    assert xi[0] == pytest.approx(ref_end, abs=1e-6)
+
+
+def test_no_lag_is_the_unicycle_and_history_replays_the_commands():
+    lag0 = ActuatorLag(0.0, 0.0, DT)
+    assert not lag0.active
+    assert lag0.step((0.3, 0.1), (1.0, -0.5)) == ((1.0, -0.5), (1.0, -0.5))
+    Lv, cv, _, _ = lag0.matrices(5)
+    np.testing.assert_array_equal(Lv, np.eye(5))
+    np.testing.assert_array_equal(cv, 0.0)
+    lag = ActuatorLag(0.45, 0.4, DT)
+    history = {t: (1.5, 0.2) for t in range(100, 140)}
+    xi = lag.state_before(140, history.get)
+    assert xi[0] == pytest.approx(1.5, abs=1e-3) and xi[1] == pytest.approx(0.2, abs=1e-3)   # settled
+    assert lag.state_before(100, history.get) == (0.0, 0.0)                                   # at rest before
+    one = lag.state_before(101, history.get)
+    assert one[0] == pytest.approx(1.5 * (1 - math.exp(-DT / 0.45)))
+
+
+def test_experiences_of_a_robot_that_lags_exactly_as_modelled_are_zero():
+    route = Path("r", np.column_stack([np.arange(0, 20, 0.25), np.zeros(80), np.zeros(80)]))
+    lag = ActuatorLag(0.45, 0.4, DT)
+    builder, plain = ExperienceBuilder(route, DT, lag=lag), ExperienceBuilder(route, DT)
+    pose, xi = np.array([1.0, 0.05, 0.02]), (0.0, 0.0)
+    out, out_plain = [], []
+    for k in range(30):
+        u = (0.8, 0.3 * math.sin(0.3 * k))
+        vertex = route.nearest_vertex(pose)
+        T = np.array([pose[0] - route.poses[vertex, 0], pose[1], pose[2]])
+        for b, o in ((builder, out), (plain, out_plain)):
+            obs = b.add_estimate(k, k * DT, vertex, T)
+            if obs is not None:
+                o.append(obs)
+            b.add_command(k, *u)
+        (vb, wb), xi = lag.step(xi, u)
+        pose = pose + DT * np.array([vb * math.cos(pose[2]), vb * math.sin(pose[2]), wb])
+    assert len(out) == 28
+    for o in out:
+        np.testing.assert_allclose(o.g, 0.0, atol=1e-12)
+    # the plain unicycle would have learned the lag as a disturbance: the robot falls behind its command
+    assert out_plain[0].g[0] < -0.02
