@@ -285,6 +285,33 @@ def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c
     assert c["constraint_violations"] > 0 or "outside the corridor" in c["end_reason"], c
 
 
+@pytest.mark.integration
+def test_thesis_experiment_2_grizzly_in_ruts_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c_lb_nmpc_leaves_it(
+        tmp_path, scenario_file):
+    """Thesis 7.4.4 through the real services (examples/rc-grizzly-ruts.toml: the 900 kg Grizzly with its
+    0.4 s drive lag, 90 m with a side slope and deepening ruts, 2.0 m/s, 0.35 m / 15 deg corridor), three of
+    its ten trials: RC-LB-NMPC keeps the corridor and its travel time falls by 30 % (measured 37 %: 85.5 ->
+    53.8 s); C-LB-NMPC leaves the corridor in trial 1."""
+    import json
+    import os
+    import tomllib
+
+    from deploy.experiment import run_experiment
+    with open(os.path.join(os.path.dirname(__file__), "..", "examples", "rc-grizzly-ruts.toml"), "rb") as f:
+        base = tomllib.load(f)
+    rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
+    run_experiment(scenario_file(dict(base, trials={"count": 3, "speed": 2.0})), rc_dir,
+                   progress_stream=open(os.devnull, "w"))
+    rc = json.loads((rc_dir / "summary.json").read_text())["trials"]
+    c_data = dict(base, name="c-lb-nmpc", controller=dict(base["controller"], algorithm="c-lb-nmpc"),
+                  trials={"count": 1, "speed": 2.0})
+    run_experiment(scenario_file(c_data), c_dir, progress_stream=open(os.devnull, "w"))
+    c = json.loads((c_dir / "summary.json").read_text())["trials"][0]
+    assert len(rc) == 3 and all(t["completed"] and t["constraint_violations"] == 0 for t in rc), rc
+    assert rc[-1]["travel_time_s"] <= 0.7 * rc[0]["travel_time_s"], [t["travel_time_s"] for t in rc]
+    assert c["constraint_violations"] > 0 or "outside the corridor" in c["end_reason"], c
+
+
 def test_constrained_step_matches_ipopt_on_the_same_problem():
     """RC-LB-NMPC steps in a narrow corridor (slowing down, limits active) re-solved by CasADi/IPOPT
     (bench/controller.py writes the same NLP there): our SQP's merit is IPOPT's optimum to 0.1 %."""
