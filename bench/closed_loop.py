@@ -12,6 +12,7 @@ from common.path import Path
 from common.robot import PRESETS, RobotParams
 from services.bridge.simulator import SimSample, Simulator
 from services.bridge.teach_driver import PurePursuitDriver, smooth_waypoints
+from services.controller.actuator import ActuatorLag
 from services.controller.core import ControllerCore
 from services.controller.experience import Observation
 from services.controller.fl import FLGains
@@ -82,7 +83,8 @@ class ClosedLoop:
         r = self.robot
         tracker = PathTracker(path, law or FLLaw(FLGains()),
                               TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature), speed_mps=speed,
-                              ic_vertices=ic_vertices, corridor=corridor)
+                              ic_vertices=ic_vertices, corridor=corridor,
+                              lag=law.settings.lag(self.period_s) if hasattr(law, "settings") else ActuatorLag())
         core = ControllerCore(path, tracker, self.period_s)
         s = self.sim.sample()
         lat, head, hint, finished, observations = [], [], 0, False, []

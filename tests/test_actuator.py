@@ -84,3 +84,20 @@ def test_experiences_of_a_robot_that_lags_exactly_as_modelled_are_zero():
         np.testing.assert_allclose(o.g, 0.0, atol=1e-12)
     # the plain unicycle would have learned the lag as a disturbance: the robot falls behind its command
     assert out_plain[0].g[0] < -0.02
+
+
+def test_a_skipped_tick_holds_the_command_before_it():
+    lag = ActuatorLag(0.45, 0.4, DT)
+    steady = {t: (1.5, 0.2) for t in range(100, 140)}
+    gap = dict(steady)
+    del gap[137]                     # a realtime loop that missed a tick: the drive kept the last command
+    assert lag.state_before(140, gap.get) == pytest.approx(lag.state_before(140, steady.get))
+
+
+def test_nmpc_settings_still_validate_everything():
+    from services.controller.nmpc import NMPCSettings
+    for bad in (dict(actuator_tau_s=(-0.1, 0.0)), dict(actuator_tau_s=(0.1,)), dict(horizon=0),
+                dict(r_w=0.0, r_dw=0.0), dict(min_band_fraction=1.0)):
+        with pytest.raises(ValueError):
+            NMPCSettings(**bad)
+    assert NMPCSettings(actuator_tau_s=[0.45, 0.4]).lag(DT) == ActuatorLag(0.45, 0.4, DT)

@@ -133,6 +133,41 @@ def test_lateral_sigma_speed_jacobian_matches_finite_differences_of_the_propagat
             assert np.abs(fd - kin).max() > 10 * np.abs(fd - ours).max()
 
 
+def test_lateral_sigma_speed_jacobian_with_a_drive_lag_matches_finite_differences():
+    """With the drive's lag the robot moves at vbar = L v + c: a command's effect on the spread reaches
+    every later step (checked against finite differences of the propagation through the lag)."""
+    path = arc_path()
+    ctx = dataclasses.replace(ctx_for(path, path.pose_at(11.0)), xi_now=(0.6, 0.0))
+    p, _ = build_problem(ctx, NMPCSettings(actuator_tau_s=(0.45, 0.4)), DT, None)
+    K = p.K
+    direction = np.arctan2(p.sinD[1:], p.cD[1:])
+    S0 = np.diag([1e-4, 1e-4, 1e-3])
+    prior = DisturbanceVariance(None, PriorStd(base=(0.001, 0.002, 0.01), per_mps=(0.004, 0.008, 0.025)),
+                                (0.0, 0.0, 0.0))
+
+    def inputs(v):
+        A = np.zeros((K, 9))
+        A[:, 5], A[:, 7] = v, np.concatenate([[0.4], v[:-1]])
+        return A
+
+    def sig_lat(v):
+        X = p.rollout(p.w_ref, False, v=v)[0]
+        vb, wb = p.effective(v, p.w_ref)
+        return route_sigmas(propagate(X, None, np.zeros((K, 3)), prior(inputs(v)), vb, wb, S0, DT, 2.0),
+                            direction)[:, 1]
+
+    v = p.v.copy()
+    X = p.rollout(p.w_ref, False, v=v)[0]
+    vb, wb = p.effective(v, p.w_ref)
+    Sig = propagate(X, None, np.zeros((K, 3)), prior(inputs(v)), vb, wb, S0, DT, 2.0)
+    dv, dvp = variance_speed_derivatives(prior, inputs(v), h=1e-6)
+    ours = lateral_sigma_speed_jacobian(X, Sig, vb, direction, route_sigmas(Sig, direction)[:, 1], DT, dv, dvp,
+                                        p.lag[0])
+    h = 1e-5
+    fd = np.column_stack([(sig_lat(v + h * e) - sig_lat(v - h * e)) / (2 * h) for e in np.eye(K)])
+    np.testing.assert_allclose(ours, fd, rtol=0.15, atol=2e-4)
+
+
 def no_uncertainty(**kw):
     return NMPCSettings(prior_std_base=(0, 0, 0), prior_std_per_mps=(0, 0, 0), prior_std_per_radps=(0, 0, 0),
                         process_std=(0, 0, 0), **kw)

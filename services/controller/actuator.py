@@ -64,11 +64,14 @@ class ActuatorLag:
     def state_before(self, tick: int, command_at: Callable[[int], tuple[float, float] | None]) -> tuple[float, float]:
         """xi at the start of `tick`, from the commands applied before it (none known: standing still).
         The lag forgets (to exp(-10)) within 10 tau, so only that many periods are replayed, from the drive
-        settled at the oldest of them."""
+        settled at the oldest of them. A period without a recorded command (a skipped tick) held the one
+        before it; before the first recorded command the robot stood still."""
         n = self.history_periods
-        xi = command_at(tick - n) or (0.0, 0.0)
+        u = command_at(tick - n) or (0.0, 0.0)
+        xi = u
         for t in range(tick - n, tick):
-            xi = self.step(xi, command_at(t) or (0.0, 0.0))[1]
+            u = command_at(t) or u
+            xi = self.step(xi, u)[1]
         return xi
 
     def matrices(self, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

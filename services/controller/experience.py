@@ -90,7 +90,7 @@ class ExperienceBuilder:
 
     def add_command(self, tick: int, v: float, w: float) -> None:
         self._cmd[tick] = (v, w)
-        for old in [t for t in self._cmd if t < tick - max(50, self.lag.history_periods + 1)]:
+        for old in [t for t in self._cmd if t < tick - 50 - self.lag.history_periods]:
             del self._cmd[old]
 
     def add_estimate(self, tick: int, stamp_s: float, vertex: int, T_vertex_robot) -> Observation | None:

@@ -87,9 +87,6 @@ class NMPCSettings:
         if len(tau) != 2 or min(tau) < 0:
             raise ValueError("actuator_tau_s: two non-negative time constants (v, w) in seconds")
         object.__setattr__(self, "actuator_tau_s", tau)
-
-    def lag(self, dt: float) -> ActuatorLag:
-        return ActuatorLag(self.actuator_tau_s[0], self.actuator_tau_s[1], dt)
         if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
                 self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw, self.q_terminal, self.lookahead_m) < 0:
             raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
@@ -97,6 +94,9 @@ class NMPCSettings:
             raise ValueError("r_w or r_dw must be > 0 (eq. 5.3 needs R positive definite)")
         if not 0.0 <= self.min_band_fraction < 1.0:
             raise ValueError("min_band_fraction must be in [0, 1)")
+
+    def lag(self, dt: float) -> ActuatorLag:
+        return ActuatorLag(self.actuator_tau_s[0], self.actuator_tau_s[1], dt)
 
 
 @dataclass

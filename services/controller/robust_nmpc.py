@@ -322,7 +322,7 @@ class RCLBNMPCLaw:
             dvar_dv, dvar_dvprev = variance_speed_derivatives(var, A)
             direction = np.arctan2(p.sinD[1:], p.cD[1:])
             dsig_v = lateral_sigma_speed_jacobian(cur["X"], Sig, p.effective(v)[0], direction, sig_start[:, 1], dt,
-                                                  dvar_dv, dvar_dvprev)
+                                                  dvar_dv, dvar_dvprev, None if p.lag is None else p.lag[0])
             cur = score(cur)
         sig0 = sig_start[0]
         if alpha > 0 and min(hi_lat[0] - lo_lat[0] - 2 * alpha * sig0[1], head_lim[0] - alpha * sig0[2]) <= 0:

@@ -125,13 +125,16 @@ def route_sigmas(Sigmas: np.ndarray, direction: np.ndarray) -> np.ndarray:
 
 def lateral_sigma_speed_jacobian(X: np.ndarray, Sigmas: np.ndarray, v: np.ndarray, direction: np.ndarray,
                                  sig_lat: np.ndarray, dt: float, dvar_dv: np.ndarray | None = None,
-                                 dvar_dvprev: np.ndarray | None = None) -> np.ndarray:
+                                 dvar_dvprev: np.ndarray | None = None, lag: np.ndarray | None = None) -> np.ndarray:
     """d sigma_lat,j / d v_i (K, K), to first order (the linearized propagation Sigma' = A Sigma A' + Q with
     A = df/dx and Q = R(theta) diag(var_g) R(theta)'). Two effects: faster driving turns heading
     uncertainty into lateral uncertainty sooner (through A), and the disturbance itself is more uncertain
     at speeds with little experience or under a prior growing with speed (`dvar_dv` (K, 3): d var_g,j /
     d v_j; `dvar_dvprev`: d var_g,j / d v_{j-1}, the previous command being a GP input too). The
-    constrained law needs this to know that slowing down shrinks the tightened corridor margin."""
+    constrained law needs this to know that slowing down shrinks the tightened corridor margin. `v` are
+    the speeds the robot moves at; with a drive lag (`lag`: L of actuator.py, vbar = L v + c) the motion
+    term of step j comes from every earlier command i with weight L[j, i] (the variance's from the
+    commands themselves, which are the GP's inputs)."""
     K = len(v)
     out = np.zeros((K, K))
     n = np.column_stack([-np.sin(direction), np.cos(direction), np.zeros(K)])   # lateral direction
@@ -156,7 +159,10 @@ def lateral_sigma_speed_jacobian(X: np.ndarray, Sigmas: np.ndarray, v: np.ndarra
         dA = np.zeros((3, 3))
         dA[0, 2], dA[1, 2] = -dt * math.sin(th[j]), dt * math.cos(th[j])
         d = dA @ Sigmas[j] @ As[j].T
-        dS[j] = d + d.T
+        if lag is None:
+            dS[j] = d + d.T
+        else:
+            dS[:j + 1] += lag[j, :j + 1, None, None] * (d + d.T)
         if dvar_dv is not None:
             dS[j] += dQ(j, dvar_dv[j])
         if sig_lat[j] > 1e-9:
