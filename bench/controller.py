@@ -32,7 +32,7 @@ from services.controller.gauss_newton import gauss_newton
 from services.controller.local_model import LocalModels
 from services.controller.corridor import Corridor
 from services.controller.nmpc import HorizonProblem, LBNMPCLaw, NMPCSettings, build_problem
-from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
+from services.controller.robust_nmpc import SIGNS, MMLBNMPCLaw, RCLBNMPCLaw
 from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
 from services.gp_store.db import BinPolicy, ExperienceDB
 from services.gp_store.fitting import fit_route
@@ -99,7 +99,7 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
         statuses.append(res.info.get("status", ""))
         if u0 is not None and len(times) % keep_every == 0:
             kept.append((ctx, models.model_for(ctx), u0))
-        if algorithm in ("c-lb-nmpc", "rc-lb-nmpc") and len(times) % keep_every == 0 and not res.stop_reason:
+        if algorithm != "lb-nmpc" and len(times) % keep_every == 0 and not res.stop_reason:
             kept.append((law.last_problem, times[-1]))
         return res
 
@@ -193,6 +193,56 @@ def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.nda
     return seconds, float(out["f"])
 
 
+def worst_case_cost(problem: HorizonProblem, bound: np.ndarray, w: np.ndarray) -> float:
+    """Eq. 6.5-6.6 at w: the largest cost over the 2^3 boundary sequences E + s_l * bound."""
+    saved = problem.cost_errors
+    try:
+        costs = []
+        for signs in SIGNS:
+            problem.cost_errors = lambda E, signs=signs: E + signs * bound
+            costs.append(problem.cost(w))
+    finally:
+        problem.cost_errors = saved
+    return max(costs)
+
+
+def casadi_solve_minmax(lp: dict, settings: NMPCSettings):
+    """One MM-LB-NMPC step (`MMLBNMPCLaw.last_problem`) in CasADi, solved by IPOPT in epigraph form:
+    min t subject to t >= the cost of each of the 2^3 boundary sequences (the same fixed 3-sigma bounds,
+    the same GP mean, weights and limits). Returns (solve seconds, optimal worst-case cost, ours)."""
+    import casadi as ca
+    p, bound = lp["problem"], lp["bound"]
+    K, s = p.K, settings
+    w = ca.SX.sym("w", K)
+    t = ca.SX.sym("t")
+    D = [[float(x) for x in row] for row in p.D]
+    X = _casadi_rollout(p, _casadi_gp_mean(lp["model"]), w, p.v, D, p.sD, p.cD, p.sinD)
+    E = [_route_errors(X, D, p.cD, p.sinD, j) for j in range(1, K + 1)]
+    common = sum(s.r_w * (w[j] - p.w_ref[j]) ** 2 for j in range(K))
+    prev = p.u_prev[1]
+    for j in range(K):
+        common += s.r_dw * (w[j] - prev) ** 2
+        prev = w[j]
+    g = []
+    for signs in SIGNS:
+        Eb = [[E[j][c] + signs[c] * bound[j, c] for c in range(3)] for j in range(K)]
+        track = sum(p.sqrt_q[c] ** 2 * Eb[j][c] ** 2 for j in range(K) for c in range(3))
+        term = Eb[-1][1] + s.lookahead_m * ca.sin(Eb[-1][2])
+        g.append(0.5 * (track + common + s.q_terminal * term ** 2) - t)
+    nlp = {"x": ca.vertcat(w, t), "f": t, "g": ca.vertcat(*g)}
+    solver = ca.nlpsol("mm", "ipopt", nlp, {"ipopt.print_level": 0, "print_time": 0, "ipopt.tol": 1e-10,
+                                            "ipopt.sb": "yes"})
+    ours = worst_case_cost(p, bound, lp["w"])
+    lim = lp["w_limit"]
+    t0 = time.perf_counter()
+    out = solver(x0=np.concatenate([lp["u0"], [ours]]), lbx=np.concatenate([-lim, [-np.inf]]),
+                 ubx=np.concatenate([lim, [np.inf]]), ubg=0.0)
+    seconds = time.perf_counter() - t0
+    if not solver.stats()["success"]:
+        return seconds, None, ours
+    return seconds, float(out["f"]), ours
+
+
 def casadi_solve_constrained(lp: dict, model, settings: NMPCSettings):
     """One step of C-/RC-LB-NMPC (`RCLBNMPCLaw.last_problem`) in CasADi, solved by IPOPT: both speeds
     free, the desired poses following the planned speeds along the route, the corridor tightened by
@@ -281,9 +331,6 @@ def run_bench(args) -> dict:
             lb_times = time_controller(cl, hyper, windows, trials, settings, 10 ** 9, "lb-nmpc")[0]
             result["lb_nmpc_solve_ms_p50"] = round(float(np.percentile(lb_times, 50)), 3)
             result["mm_overhead"] = round(float(np.percentile(times, 50) / np.percentile(lb_times, 50) - 1.0), 3)
-        if args.algorithm == "mm-lb-nmpc":
-            log.warning("no CasADi comparison for MM-LB-NMPC (its worst case over 2^3 sequences is not written there)")
-            return result
         try:
             import casadi  # noqa: F401  (optional benchmark dependency)
         except ImportError:
@@ -293,6 +340,26 @@ def run_bench(args) -> dict:
             log.warning("no problems kept for the IPOPT comparison (lower --keep-every)")
             return result
         ratios, gaps, ipopt_ms = [], [], []
+        if args.algorithm == "mm-lb-nmpc":
+            # our whole step (covariance, smoothed and exact phases) against IPOPT on the min-max NLP
+            failed = 0
+            for lp, ours_ms in kept:
+                sec, ipopt_cost, ours_cost = casadi_solve_minmax(lp, settings)
+                if ipopt_cost is None:
+                    failed += 1
+                    continue
+                ipopt_ms.append(sec * 1e3)
+                ratios.append(sec * 1e3 / ours_ms)
+                gaps.append((ours_cost - ipopt_cost) / max(abs(ipopt_cost), 1e-12))
+            log.info("IPOPT on %d min-max problems (%d failed): %.1f ms median (ours %.1fx faster); worst-case "
+                     "cost gap median %.2e, max %.2e", len(ipopt_ms), failed, np.median(ipopt_ms),
+                     np.median(ratios), np.median(gaps), np.max(gaps))
+            result.update({"casadi_solve_ms_p50": round(float(np.median(ipopt_ms)), 3),
+                           "cost_gap": float(np.mean(gaps)), "cost_gap_median": float(np.median(gaps)),
+                           "cost_gap_max": float(np.max(gaps)),
+                           "casadi_over_ours_time_ratio": round(float(np.median(ratios)), 2),
+                           "casadi_problems": len(ipopt_ms), "casadi_failed": failed})
+            return result
         if args.algorithm != "lb-nmpc":
             # the whole step of ours (ladder, covariance, SQP) against IPOPT's solve of its NLP alone
             failed = 0

@@ -300,6 +300,7 @@ class HorizonProblem:
         J[3 * K:4 * K] = self.sqrt_r * np.eye(K)
         J[4 * K:5 * K] = self.sqrt_dr * (np.eye(K) - np.eye(K, k=-1))
         J[5 * K] = self.sqrt_qt * (dE[-1, 1] + self.s.lookahead_m * math.cos(E[-1, 2]) * dE[-1, 2])
+        self.last_dE = dE         # d(errors)/dw of this residual (MM-LB-NMPC's boundary sequences reuse it)
         if self.extra_residuals is not None:
             r2, J2 = self.extra_residuals(E, dE)
             r, J = np.concatenate([r, r2]), np.vstack([J, J2])

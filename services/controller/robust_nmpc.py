@@ -36,12 +36,12 @@ import numpy as np
 
 from services.controller.gauss_newton import gauss_newton
 from services.controller.laws import LawResult, StepContext
+from services.controller.minmax import SIGNS, MinMaxQP, boundary_costs, solve_minmax
 from services.controller.nmpc import HorizonProblem, NMPCSettings, Plan, build_problem
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
                                              route_sigmas, sigma_point_step, variance_speed_derivatives)
 
-SIGNS = np.array([[sx, sy, sh] for sx in (1, -1) for sy in (1, -1) for sh in (1, -1)], dtype=float)  # eq. 6.5
 
 
 def _variance_model(gp, s: NMPCSettings) -> DisturbanceVariance:
@@ -87,6 +87,8 @@ class MMLBNMPCLaw:
         self.model_for = model_for
         self._prev: np.ndarray | None = None
         self.last_plan: Plan | None = None
+        self.last_problem: dict | None = None
+        self._qp: MinMaxQP | None = None
 
     def angular(self, ctx: StepContext) -> LawResult:
         s = self.settings
@@ -123,22 +125,23 @@ class MMLBNMPCLaw:
         problem.extra_residuals = worst_case
         res = gauss_newton(problem.residual, u0, -w_limit, w_limit, max_iter=s.max_iter, tol=s.tol,
                            max_evals=max(2, s.max_evals // 2))
-        # then the exact worst boundary sequence (eq. 6.5) from there: away from a kink this is Newton-like
-        # on the true min-max cost, and a step that raises the true worst case is not taken
+        # then the exact min-max (eq. 6.3-6.6) from there, all eight boundary sequences at once (minmax.py):
+        # Gauss-Newton on whichever is worst stalls where several are, well above the optimum
         problem.extra_residuals = None
-
-        def boundary_errors(E: np.ndarray) -> np.ndarray:
-            worst["signs"] = np.where(np.einsum("kc,kc->c", E, bound) >= 0, 1.0, -1.0)
-            return E + worst["signs"] * bound
-
-        problem.cost_errors = boundary_errors
         if s.max_evals - res.evaluations >= 2:
-            fine = gauss_newton(problem.residual, res.u, -w_limit, w_limit, max_iter=s.max_iter, tol=s.tol,
-                                max_evals=s.max_evals - res.evaluations)
+            if self._qp is None or self._qp.K != problem.K:
+                self._qp = MinMaxQP(problem.K)
+            fine = solve_minmax(problem, bound, res.u, -w_limit, w_limit, self._qp, s.max_iter, s.tol,
+                                s.max_evals - res.evaluations)
             res = dataclasses.replace(fine, evaluations=res.evaluations + fine.evaluations)
+        else:
+            res = dataclasses.replace(res, cost=float(boundary_costs(problem, bound, res.u, False).max()))
+        worst["signs"] = SIGNS[int(np.argmax(boundary_costs(problem, bound, res.u, False)))]
         self._prev = res.u
         X, _ = problem.rollout(res.u, with_jac=False)
         self.last_plan = Plan(res.u, X, problem.D, res.cost, res.iterations, res.converged)
+        # what this step's min-max problem was, for re-solving it elsewhere (bench: CasADi/IPOPT)
+        self.last_problem = dict(problem=problem, bound=bound, u0=u0, w_limit=w_limit, model=gp, w=res.u)
         return LawResult(float(res.u[0]), res.iterations, X[1:],
                          {"cost": res.cost, "converged": res.converged, "status": res.status,
                           "evaluations": res.evaluations, "learned": gp is not None,
