@@ -32,7 +32,8 @@ from services.controller.gauss_newton import gauss_newton
 from services.controller.local_model import LocalModels
 from services.controller.corridor import Corridor
 from services.controller.nmpc import HorizonProblem, LBNMPCLaw, NMPCSettings, build_problem
-from services.controller.robust_nmpc import SIGNS, MMLBNMPCLaw, RCLBNMPCLaw
+from services.controller.minmax import SIGNS
+from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
 from services.gp_store.db import BinPolicy, ExperienceDB
 from services.gp_store.fitting import fit_route

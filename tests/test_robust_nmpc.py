@@ -13,7 +13,8 @@ from services.controller.corridor import Corridor
 from services.controller.gauss_newton import gauss_newton
 from services.controller.laws import StepContext
 from services.controller.nmpc import NMPCSettings, build_problem
-from services.controller.robust_nmpc import SIGNS, MMLBNMPCLaw, RCLBNMPCLaw
+from services.controller.minmax import SIGNS
+from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
                                              route_sigmas, sigma_point_step, variance_speed_derivatives)
 

@@ -5,13 +5,12 @@ the GP mean of the local window in the model) and add the horizon's covariance f
 transform (uncertainty.py), started from the localizer's covariance carried through the delay (7.12).
 
 MM-LB-NMPC (eq. 6.2-6.9): the cost is that of the worst of the 2^3 boundary sequences
-xbar_j + Gamma_l 3 sigma_j (eq. 6.5; errors along, lateral and heading in the route frame), and the
-Gauss-Newton step linearizes it around that sequence with the mean's Jacobian (eq. 6.7-6.8). The
-cost is separable in the three error components, so the worst case is a sum of absolute values; half the
-evaluation budget goes to a smoothed version of it (Gauss-Newton passes the kinks where the worst case
-switches), the rest to the exact worst sequence. The covariance is computed once per step at the warm
-start (it moves little within a solve), and the step length beta of eq. 6.9 is the Levenberg-Marquardt
-acceptance of gauss_newton.py: a step that raises the worst-case cost is shortened.
+xbar_j + Gamma_l 3 sigma_j (eq. 6.5; errors along, lateral and heading in the route frame), with the
+mean's Jacobian for all of them (eq. 6.7-6.8). It is minimized as a min-max (minmax.py): each iteration
+linearizes all eight sequences and solves a small epigraph QP, then takes the damped step beta of eq. 6.9
+that lowers the true worst-case cost; it stops when the step is below tol (the thesis's alpha). The
+thesis's iteration on the single worst sequence stalls where several are worst at once. The covariance
+is computed once per step at the warm start (it moves little within a solve).
 
 C-/RC-LB-NMPC (eq. 7.2-7.6): linear and angular speeds are both optimized; the cost weighs the
 errors of the mean sequence and the deviation from the desired inputs (scheduled speed, route turn
@@ -34,9 +33,8 @@ from typing import Callable
 
 import numpy as np
 
-from services.controller.gauss_newton import gauss_newton
 from services.controller.laws import LawResult, StepContext
-from services.controller.minmax import SIGNS, MinMaxQP, boundary_costs, solve_minmax
+from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
 from services.controller.nmpc import HorizonProblem, NMPCSettings, Plan, build_problem
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
@@ -103,40 +101,13 @@ class MMLBNMPCLaw:
         _, sig = horizon_sigmas(problem, X0, A, problem.v, u0, gp, var, Sigma0, s, self.dt)
         bound = s.mm_sigmas * sig                                   # (K, 3)
         self.last_sigmas = sig
-        # eq. 6.5-6.6: the cost of boundary sequence l is sum_c q_c |E_c + s_lc b_c|^2, separable in the
-        # components c, so the worst of the 2^3 is the mean's cost + 2 sum_c q_c |<E_c, b_c>| + const:
-        # the max is a sum of absolute values. Written as residuals sqrt(2 q_c) (x_c^2 + eps^2)^(1/4),
-        # x_c = <E_c, b_c>, it is smooth, so Gauss-Newton crosses the kinks where the worst case switches
-        # instead of rejecting every step there (the plain max of eq. 6.6 left it stuck on its warm start)
-        q = problem.sqrt_q ** 2
-        eps = 1e-4 * float(np.sum(bound ** 2)) + 1e-12
-        worst = {"signs": np.ones(3)}
-
-        def worst_case(E: np.ndarray, dE: np.ndarray | None):
-            x = np.einsum("kc,kc->c", E, bound)
-            worst["signs"] = np.where(x >= 0, 1.0, -1.0)
-            h = x * x + eps * eps
-            r = np.sqrt(2.0 * q) * h ** 0.25
-            if dE is None:
-                return r, None
-            dx = np.einsum("kc,kcu->cu", bound, dE)                 # d x_c / d w
-            return r, (np.sqrt(2.0 * q) * 0.5 * x * h ** -0.75)[:, None] * dx
-
-        problem.extra_residuals = worst_case
-        res = gauss_newton(problem.residual, u0, -w_limit, w_limit, max_iter=s.max_iter, tol=s.tol,
-                           max_evals=max(2, s.max_evals // 2))
-        # then the exact min-max (eq. 6.3-6.6) from there, all eight boundary sequences at once (minmax.py):
-        # Gauss-Newton on whichever is worst stalls where several are, well above the optimum
-        problem.extra_residuals = None
-        if s.max_evals - res.evaluations >= 2:
-            if self._qp is None or self._qp.K != problem.K:
-                self._qp = MinMaxQP(problem.K)
-            fine = solve_minmax(problem, bound, res.u, -w_limit, w_limit, self._qp, s.max_iter, s.tol,
-                                s.max_evals - res.evaluations)
-            res = dataclasses.replace(fine, evaluations=res.evaluations + fine.evaluations)
-        else:
-            res = dataclasses.replace(res, cost=float(boundary_costs(problem, bound, res.u, False).max()))
-        worst["signs"] = SIGNS[int(np.argmax(boundary_costs(problem, bound, res.u, False)))]
+        # eq. 6.3-6.6: the min-max over all eight boundary sequences at once, from the warm start
+        # (minmax.py: an SQP in epigraph form; Gauss-Newton on whichever sequence is worst, as the thesis
+        # iterates, stalls where several are, well above the optimum)
+        if self._qp is None or self._qp.K != problem.K:
+            self._qp = MinMaxQP(problem.K)
+        res = solve_minmax(problem, bound, u0, -w_limit, w_limit, self._qp, s.max_iter, s.tol, s.max_evals)
+        worst_case = int(np.argmax(boundary_costs(problem, bound, res.u, False)))
         self._prev = res.u
         X, _ = problem.rollout(res.u, with_jac=False)
         self.last_plan = Plan(res.u, X, problem.D, res.cost, res.iterations, res.converged)
@@ -145,7 +116,7 @@ class MMLBNMPCLaw:
         return LawResult(float(res.u[0]), res.iterations, X[1:],
                          {"cost": res.cost, "converged": res.converged, "status": res.status,
                           "evaluations": res.evaluations, "learned": gp is not None,
-                          "worst_case": int(np.flatnonzero((SIGNS == worst["signs"]).all(axis=1))[0]), "sigma_lat_max_m": float(sig[:, 1].max()),
+                          "worst_case": worst_case, "sigma_lat_max_m": float(sig[:, 1].max()),
                           "sigma_head_max_rad": float(sig[:, 2].max())})
 
 
