@@ -351,9 +351,9 @@ def test_thesis_experiment_2_grizzly_in_ruts_rc_lb_nmpc_keeps_the_corridor_and_s
 def test_thesis_min_max_experiment_lowers_the_first_trials_worst_lateral_error_below_lb_nmpcs(
         tmp_path, scenario_file):
     """Thesis 6.4 through the real services (examples/mm-husky.toml: Husky, 13 m, 0.5 m/s, a side slope
-    and a slippery turn): with no experience, MM-LB-NMPC's worst lateral error in trial 1 is below
-    LB-NMPC's for each of two seeds, by >= 5 % on average (measured 6-8 %; the issue's 20 % is not
-    reached by the exact min-max, see README)."""
+    and a slippery turn, the thesis's 3:3:1 weights): with no experience, MM-LB-NMPC's worst lateral error
+    in trial 1 is >= 20 % below LB-NMPC's on average over two seeds (measured 25 % and 23 %), and lower
+    for each."""
     import json
     import os
     import tomllib
@@ -373,7 +373,7 @@ def test_thesis_min_max_experiment_lowers_the_first_trials_worst_lateral_error_b
             assert trial["completed"], trial
             worst[algo] = trial["max_lateral_m"]
         ratios.append(worst["mm-lb-nmpc"] / worst["lb-nmpc"])
-    assert max(ratios) < 1.0 and sum(ratios) / len(ratios) <= 0.95, ratios
+    assert max(ratios) < 0.9 and sum(ratios) / len(ratios) <= 0.8, ratios
 
 
 def test_constrained_step_matches_ipopt_on_the_same_problem():
