@@ -2,7 +2,10 @@
 for the covariance, finite differences for the new sensitivities, plain LB-NMPC where the extensions
 must reduce to it, and the corridor the constrained law must keep its prediction in."""
 import dataclasses
+import json
 import math
+import os
+import tomllib
 
 import numpy as np
 import pytest
@@ -19,6 +22,12 @@ from services.controller.uncertainty import (DisturbanceVariance, PriorStd, late
                                              route_sigmas, sigma_point_step, variance_speed_derivatives)
 
 DT = 0.1
+
+
+def example(name: str) -> dict:
+    """A scenario of examples/ as a dict (the thesis-reproduction tests run them, or variants of them)."""
+    with open(os.path.join(os.path.dirname(__file__), "..", "examples", f"{name}.toml"), "rb") as f:
+        return tomllib.load(f)
 
 
 def arc_path():
@@ -252,9 +261,6 @@ def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit
 @pytest.mark.integration
 def test_rc_lb_nmpc_starting_outside_the_corridor_stops_and_says_why(tmp_path, scenario_file):
     """Through the real services: a repeat that starts 0.4 m off a 0.3 m corridor never moves."""
-    import json
-    import os
-
     from deploy.experiment import run_experiment
     data = {"name": "rc_outside", "seed": 2, "robot": {"preset": "husky"},
             "path": {"waypoints": [[0, 0], [8, 0], [12, 3]], "teach_speed_mps": 0.5},
@@ -274,13 +280,8 @@ def test_localization_delay_compensation_lowers_the_lateral_error(tmp_path, scen
     """Thesis eq. 7.12 through the real services: with estimates 0.3 s old, RC-LB-NMPC started from the
     estimate carried forward through the commands sent since tracks the corners of the indoor route;
     started from the stale estimate it overshoots them."""
-    import json
-    import os
-    import tomllib
-
     from deploy.experiment import run_experiment
-    with open(os.path.join(os.path.dirname(__file__), "..", "examples", "rc-husky-indoor.toml"), "rb") as f:
-        base = tomllib.load(f)
+    base = example("rc-husky-indoor")
     out = {}
     for compensate in (True, False):
         data = dict(base, name=f"delay_{compensate}", localization={"source": "pose", "noise_m": 0.005, "delay_s": 0.3},
@@ -300,13 +301,8 @@ def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c
     the corridor in its first trial; RC-LB-NMPC slows down while uncertain, never leaves it, and its
     travel time falls once experience has shrunk the uncertainty (measured 19-28 % over seeds; the
     thesis's 30 % is not reached in three trials here)."""
-    import json
-    import os
-    import tomllib
-
     from deploy.experiment import run_experiment
-    with open(os.path.join(os.path.dirname(__file__), "..", "examples", "rc-husky-indoor.toml"), "rb") as f:
-        base = tomllib.load(f)
+    base = example("rc-husky-indoor")
     rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
     run_experiment(scenario_file(base), rc_dir, progress_stream=open(os.devnull, "w"))
     rc = json.loads((rc_dir / "summary.json").read_text())["trials"]
@@ -327,13 +323,8 @@ def test_thesis_experiment_2_grizzly_in_ruts_rc_lb_nmpc_keeps_the_corridor_and_s
     0.4 s drive lag, 90 m with a side slope and deepening ruts, 2.0 m/s, 0.35 m / 15 deg corridor), three of
     its ten trials: RC-LB-NMPC keeps the corridor and its travel time falls by 30 % (measured 37 %: 85.5 ->
     53.8 s); C-LB-NMPC leaves the corridor in trial 1."""
-    import json
-    import os
-    import tomllib
-
     from deploy.experiment import run_experiment
-    with open(os.path.join(os.path.dirname(__file__), "..", "examples", "rc-grizzly-ruts.toml"), "rb") as f:
-        base = tomllib.load(f)
+    base = example("rc-grizzly-ruts")
     rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
     run_experiment(scenario_file(dict(base, trials={"count": 3, "speed": 2.0})), rc_dir,
                    progress_stream=open(os.devnull, "w"))
@@ -354,13 +345,8 @@ def test_thesis_min_max_experiment_lowers_the_first_trials_worst_lateral_error_b
     and a slippery turn, the thesis's 3:3:1 weights): with no experience, MM-LB-NMPC's worst lateral error
     in trial 1 is >= 20 % below LB-NMPC's on average over two seeds (measured 25 % and 23 %), and lower
     for each."""
-    import json
-    import os
-    import tomllib
-
     from deploy.experiment import run_experiment
-    with open(os.path.join(os.path.dirname(__file__), "..", "examples", "mm-husky.toml"), "rb") as f:
-        base = tomllib.load(f)
+    base = example("mm-husky")
     ratios = []
     for seed in (4, 6):
         worst = {}
