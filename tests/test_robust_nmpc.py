@@ -30,6 +30,13 @@ def example(name: str) -> dict:
         return tomllib.load(f)
 
 
+def run_trials(scenario: str, out) -> list[dict]:
+    """Run a scenario file through the real services; the per-trial records of its summary.json."""
+    from deploy.experiment import run_experiment
+    run_experiment(scenario, out, progress_stream=open(os.devnull, "w"))
+    return json.loads((out / "summary.json").read_text())["trials"]
+
+
 def arc_path():
     th = np.concatenate([np.zeros(40), np.linspace(0, 1.2, 60), np.full(60, 1.2)])
     xy = np.cumsum(0.25 * np.column_stack([np.cos(th), np.sin(th)]), axis=0)
@@ -261,15 +268,13 @@ def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit
 @pytest.mark.integration
 def test_rc_lb_nmpc_starting_outside_the_corridor_stops_and_says_why(tmp_path, scenario_file):
     """Through the real services: a repeat that starts 0.4 m off a 0.3 m corridor never moves."""
-    from deploy.experiment import run_experiment
     data = {"name": "rc_outside", "seed": 2, "robot": {"preset": "husky"},
             "path": {"waypoints": [[0, 0], [8, 0], [12, 3]], "teach_speed_mps": 0.5},
             "localization": {"source": "pose", "noise_m": 0.005},
             "controller": {"algorithm": "rc-lb-nmpc"}, "constraints": {"lateral_m": 0.3, "heading_deg": 15.0},
             "trials": {"count": 1, "speed": 0.5, "start_offset_m": 0.4}}
     out = tmp_path / "out"
-    run_experiment(scenario_file(data), out, progress_stream=open(os.devnull, "w"))
-    trial = json.loads((out / "summary.json").read_text())["trials"][0]
+    trial = run_trials(scenario_file(data), out)[0]
     assert not trial["completed"]
     assert "outside the corridor" in trial["end_reason"], trial["end_reason"]
     assert trial["distance_m"] < 0.5
@@ -280,15 +285,13 @@ def test_localization_delay_compensation_lowers_the_lateral_error(tmp_path, scen
     """Thesis eq. 7.12 through the real services: with estimates 0.3 s old, RC-LB-NMPC started from the
     estimate carried forward through the commands sent since tracks the corners of the indoor route;
     started from the stale estimate it overshoots them."""
-    from deploy.experiment import run_experiment
     base = example("rc-husky-indoor")
     out = {}
     for compensate in (True, False):
         data = dict(base, name=f"delay_{compensate}", localization={"source": "pose", "noise_m": 0.005, "delay_s": 0.3},
                     controller={"algorithm": "rc-lb-nmpc", "horizon": 10, "nmpc": {"delay_compensation": compensate}},
                     constraints={"lateral_m": 0.15, "heading_deg": 20.0}, trials={"count": 1, "speed": 1.0})
-        run_experiment(scenario_file(data), tmp_path / str(compensate), progress_stream=open(os.devnull, "w"))
-        out[compensate] = json.loads((tmp_path / str(compensate) / "summary.json").read_text())["trials"][0]
+        out[compensate] = run_trials(scenario_file(data), tmp_path / str(compensate))[0]
     assert out[True]["completed"] and out[True]["constraint_violations"] == 0, out[True]
     assert out[True]["max_lateral_m"] < 0.8 * out[False]["max_lateral_m"], (out[True], out[False])
 
@@ -301,15 +304,12 @@ def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c
     the corridor in its first trial; RC-LB-NMPC slows down while uncertain, never leaves it, and its
     travel time falls once experience has shrunk the uncertainty (measured 19-28 % over seeds; the
     thesis's 30 % is not reached in three trials here)."""
-    from deploy.experiment import run_experiment
     base = example("rc-husky-indoor")
     rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
-    run_experiment(scenario_file(base), rc_dir, progress_stream=open(os.devnull, "w"))
-    rc = json.loads((rc_dir / "summary.json").read_text())["trials"]
+    rc = run_trials(scenario_file(base), rc_dir)
     c_data = dict(base, name="c-lb-nmpc", controller=dict(base["controller"], algorithm="c-lb-nmpc"),
                   trials={"count": 1, "speed": 1.0})
-    run_experiment(scenario_file(c_data), c_dir, progress_stream=open(os.devnull, "w"))
-    c = json.loads((c_dir / "summary.json").read_text())["trials"][0]
+    c = run_trials(scenario_file(c_data), c_dir)[0]
     assert len(rc) == 3 and all(t["completed"] and t["constraint_violations"] == 0 for t in rc), rc
     assert rc[-1]["travel_time_s"] <= 0.85 * rc[0]["travel_time_s"], [t["travel_time_s"] for t in rc]
     assert rc[0]["mean_speed_mps"] < 0.8, rc[0]                  # it slowed down while uncertain
@@ -323,16 +323,12 @@ def test_thesis_experiment_2_grizzly_in_ruts_rc_lb_nmpc_keeps_the_corridor_and_s
     0.4 s drive lag, 90 m with a side slope and deepening ruts, 2.0 m/s, 0.35 m / 15 deg corridor), three of
     its ten trials: RC-LB-NMPC keeps the corridor and its travel time falls by 30 % (measured 37 %: 85.5 ->
     53.8 s); C-LB-NMPC leaves the corridor in trial 1."""
-    from deploy.experiment import run_experiment
     base = example("rc-grizzly-ruts")
     rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
-    run_experiment(scenario_file(dict(base, trials={"count": 3, "speed": 2.0})), rc_dir,
-                   progress_stream=open(os.devnull, "w"))
-    rc = json.loads((rc_dir / "summary.json").read_text())["trials"]
+    rc = run_trials(scenario_file(dict(base, trials={"count": 3, "speed": 2.0})), rc_dir)
     c_data = dict(base, name="c-lb-nmpc", controller=dict(base["controller"], algorithm="c-lb-nmpc"),
                   trials={"count": 1, "speed": 2.0})
-    run_experiment(scenario_file(c_data), c_dir, progress_stream=open(os.devnull, "w"))
-    c = json.loads((c_dir / "summary.json").read_text())["trials"][0]
+    c = run_trials(scenario_file(c_data), c_dir)[0]
     assert len(rc) == 3 and all(t["completed"] and t["constraint_violations"] == 0 for t in rc), rc
     assert rc[-1]["travel_time_s"] <= 0.7 * rc[0]["travel_time_s"], [t["travel_time_s"] for t in rc]
     assert c["constraint_violations"] > 0 or "outside the corridor" in c["end_reason"], c
@@ -345,7 +341,6 @@ def test_thesis_min_max_experiment_lowers_the_first_trials_worst_lateral_error_b
     and a slippery turn, the thesis's 3:3:1 weights): with no experience, MM-LB-NMPC's worst lateral error
     in trial 1 is >= 20 % below LB-NMPC's on average over two seeds (measured 25 % and 23 %), and lower
     for each."""
-    from deploy.experiment import run_experiment
     base = example("mm-husky")
     ratios = []
     for seed in (4, 6):
@@ -354,8 +349,7 @@ def test_thesis_min_max_experiment_lowers_the_first_trials_worst_lateral_error_b
             data = dict(base, name=f"{algo}-{seed}", seed=seed, controller=dict(base["controller"], algorithm=algo),
                         trials={"count": 1, "speed": 0.5})
             out = tmp_path / f"{algo}-{seed}"
-            run_experiment(scenario_file(data), out, progress_stream=open(os.devnull, "w"))
-            trial = json.loads((out / "summary.json").read_text())["trials"][0]
+            trial = run_trials(scenario_file(data), out)[0]
             assert trial["completed"], trial
             worst[algo] = trial["max_lateral_m"]
         ratios.append(worst["mm-lb-nmpc"] / worst["lb-nmpc"])
