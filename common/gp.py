@@ -353,12 +353,15 @@ class GaussianProcess:
             raise ValueError(f"query points must be (M, {self.p}); got {Xq.shape}")
         return Xq - self.center
 
-    def predict(self, Xq) -> tuple[np.ndarray, np.ndarray]:
-        """Posterior mean (M, d) and variance (M, d) of the latent g (without sigma_n^2)."""
+    def predict(self, Xq, coverage: bool = False):
+        """Posterior mean (M, d) and variance (M, d) of the latent g (without sigma_n^2). With
+        `coverage`, also (M, d) the kernel correlation to the nearest training input, max_n k(a, a_n) /
+        sigma_f^2 in each output's own metric: 1 on a training input, 0 far from all of them."""
         Q = self._prep(Xq)
         m = len(Q)
         mean = np.zeros((m, self.d))
         var = np.empty((m, self.d))
+        near = np.zeros((m, self.d))
         for j, c in enumerate(self._dims):
             if self.n == 0:
                 var[:, j] = c.sf2
@@ -367,12 +370,14 @@ class GaussianProcess:
             Kq = _sqdist(A, c.B, None, c.B2)
             Kq *= -0.5
             np.exp(Kq, out=Kq)
+            if coverage:
+                near[:, j] = Kq.max(axis=1)
             Kq *= c.sf2
             mean[:, j] = Kq @ c.alpha
             V = _trsolve(c.L, Kq.T, False)                          # L^-1 k, (N, M)
             var[:, j] = c.sf2 - np.einsum("ij,ij->j", V, V)
         np.maximum(var, 0.0, out=var)
-        return mean, var
+        return (mean, var, near) if coverage else (mean, var)
 
     def predict_with_grad(self, Xq) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Mean (M, d), variance (M, d), and their gradients w.r.t. the query point, (M, d, p) each."""

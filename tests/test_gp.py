@@ -197,6 +197,23 @@ def test_no_data_gives_the_prior():
     assert fit.n_used == 0 and len(fit.hypers) == 3 and fit.lml == [0.0, 0.0, 0.0]
 
 
+def test_coverage_is_the_kernel_correlation_to_the_nearest_training_input():
+    rng = np.random.default_rng(3)
+    X, Y = _data(rng, n=60)
+    hypers = _random_hypers(rng, X, 3)
+    gp = GaussianProcess(X, Y, hypers)
+    Xq = np.vstack([X[:3], X[:3] + 0.3, rng.normal(size=(4, P)) * 50.0])
+    mean, var, near = gp.predict(Xq, coverage=True)
+    m2, v2 = gp.predict(Xq)
+    np.testing.assert_array_equal(mean, m2)
+    np.testing.assert_array_equal(var, v2)
+    for j, h in enumerate(hypers):
+        d2 = (((Xq[:, None, :] - X[None, :, :]) / h.lengthscales) ** 2).sum(axis=2)
+        np.testing.assert_allclose(near[:, j], np.exp(-0.5 * d2).max(axis=1), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(near[:3], 1.0)           # on a training input
+    assert np.all(near[6:] < 1e-6)                      # far from all of them
+
+
 def test_ill_conditioned_data_gives_no_nan():
     rng = np.random.default_rng(5)
     X = rng.normal(size=(40, P))

@@ -150,6 +150,46 @@ def test_lateral_sigma_speed_jacobian_matches_finite_differences_of_the_propagat
             assert np.abs(fd - kin).max() > 10 * np.abs(fd - ours).max()
 
 
+def test_disturbance_variance_learns_a_disturbance_the_data_show_to_be_small_but_not_where_it_never_drove():
+    """Near experience, the GP's own posterior variance counts even when its signal is far below its noise
+    (side slip on a flat floor: the lateral residuals are localization jitter, sigma_f ~ 0, and the share
+    of the prior it keeps is 1 whatever the data); at a turn rate never driven, a small sigma_f fitted
+    where it did drive claims nothing: the variance is the a-priori one."""
+    rng = np.random.default_rng(5)
+    n = 200
+    A = np.zeros((n, 9))
+    A[:, 0] = rng.uniform(0.0, 5.0, n)
+    A[:, [3, 5, 7]] = rng.uniform(0.4, 0.6, (n, 1))          # driven at ~0.5 m/s
+    A[:, [4, 6, 8]] = rng.uniform(0.3, 0.5, (n, 1))          # turning at ~0.4 rad/s
+    G = np.column_stack([0.004 * rng.normal(size=n), 0.0036 * rng.normal(size=n),
+                         0.01 * A[:, 6] + 0.0025 * rng.normal(size=n)])
+    ell = np.array([50.0, 1.0, 1.0, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3])
+    hypers = [SEHyper(ell, 0.004, 0.004), SEHyper(ell, 2e-4, 0.0036), SEHyper(ell, 0.003, 0.0025)]
+    gp = GaussianProcess(A, G, hypers)
+    prior = PriorStd(base=(0.001, 0.001, 0.002), per_mps=(0.003, 0.002, 0.004), per_radps=(0.002, 0.003, 0.015))
+    floor = np.array([0.0005, 0.001, 0.002])
+    var = DisturbanceVariance(gp, prior, tuple(floor))
+
+    def query(v, w):
+        a = np.zeros((1, 9))
+        a[0, 0], a[0, [3, 5, 7]], a[0, [4, 6, 8]] = 2.5, v, w
+        return a
+
+    def prior_var(v, w):
+        return (np.array(prior.base) + v * np.array(prior.per_mps) + w * np.array(prior.per_radps)) ** 2
+
+    assert np.allclose(DisturbanceVariance(None, prior, tuple(floor))(query(0.5, 0.4))[0],
+                       prior_var(0.5, 0.4) + floor ** 2)
+    near = var(query(0.5, 0.4))[0] - floor ** 2
+    latent = gp.predict(query(0.5, 0.4))[1][0]
+    assert latent[1] / 4e-8 > 0.5                            # the share rule alone keeps most of the prior
+    assert near[1] < 0.01 * prior_var(0.5, 0.4)[1]
+    assert np.all(near <= np.minimum(latent / np.array([h.signal_std ** 2 for h in hypers]), 1) * prior_var(0.5, 0.4)
+                  + 1e-12)                                   # never above what the share rule gave
+    far = var(query(1.0, 1.0))[0] - floor ** 2
+    assert np.all(far >= 0.9 * prior_var(1.0, 1.0)), far / prior_var(1.0, 1.0)
+
+
 def test_lateral_sigma_speed_jacobian_with_a_drive_lag_matches_finite_differences():
     """With the drive's lag the robot moves at vbar = L v + c: a command's effect on the spread reaches
     every later step (checked against finite differences of the propagation through the lag)."""
@@ -254,6 +294,20 @@ def test_robust_law_keeps_the_3_sigma_region_inside_a_narrow_corridor_by_slowing
     assert c.v_mps > 0.95                                        # the overconfident variant does not slow
 
 
+def test_robust_law_holds_one_speed_where_nothing_changes():
+    """Stepped again and again from the same state, the law commands the same speed. It used to test a
+    faster rung of its speed ladder with the slower warm start's speeds, find that it fits, let the SQP
+    drive at the faster rung whose 3-sigma region did not fit, and fall back the next step: two speeds
+    in turn, every other step outside the fit (measured 0.58 / 0.70 m/s in a 0.1 m corridor)."""
+    path = arc_path()
+    for half_width in (0.07, 0.1):
+        narrow = Corridor(path.s, half_width, math.radians(20))
+        law = RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT)
+        speeds = [law.angular(ctx_for(path, path.pose_at(8.0), v=1.0, corridor=narrow)).v_mps for _ in range(6)]
+        assert max(speeds[1:]) - min(speeds[1:]) < 0.01, speeds
+        assert speeds[-1] < 0.9
+
+
 def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit():
     path = arc_path()
     corridor = Corridor(path.s, 0.2, math.radians(15))
@@ -302,8 +356,8 @@ def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c
     """Thesis 7.4.3 through the real services (examples/rc-husky-indoor.toml: Husky, 1.0 m/s scheduled,
     0.05 m / 10 deg corridor). C-LB-NMPC, constraining only the mean of an overconfident model, leaves
     the corridor in its first trial; RC-LB-NMPC slows down while uncertain, never leaves it, and its
-    travel time falls once experience has shrunk the uncertainty (measured 19-28 % over seeds; the
-    thesis's 30 % is not reached in three trials here)."""
+    travel time falls by >= 30 % once experience has shrunk the uncertainty (measured 35-36 % over
+    seeds 3, 5, 7, 11: 60.2 -> 39.1 s with seed 3)."""
     base = example("rc-husky-indoor")
     rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
     rc = run_trials(scenario_file(base), rc_dir)
@@ -311,8 +365,8 @@ def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c
                   trials={"count": 1, "speed": 1.0})
     c = run_trials(scenario_file(c_data), c_dir)[0]
     assert len(rc) == 3 and all(t["completed"] and t["constraint_violations"] == 0 for t in rc), rc
-    assert rc[-1]["travel_time_s"] <= 0.85 * rc[0]["travel_time_s"], [t["travel_time_s"] for t in rc]
-    assert rc[0]["mean_speed_mps"] < 0.8, rc[0]                  # it slowed down while uncertain
+    assert rc[-1]["travel_time_s"] <= 0.7 * rc[0]["travel_time_s"], [t["travel_time_s"] for t in rc]
+    assert rc[0]["mean_speed_mps"] < 0.7, rc[0]                  # it slowed down while uncertain
     assert c["constraint_violations"] > 0 or "outside the corridor" in c["end_reason"], c
 
 

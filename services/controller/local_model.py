@@ -31,12 +31,16 @@ log = logging.getLogger(__name__)
 
 class LocalModels:
     def __init__(self, window: Callable[[int, float], Window], hyper: Callable[[], HyperMsg | None],
-                 horizon_s: float, v_bin_mps: float = 0.25, keep: int = 8):
+                 horizon_s: float, v_bin_mps: float = 0.25, keep: int = 8, hold_steps: int = 0):
         self.window = window
         self.hyper = hyper
         self.horizon_s = horizon_s
         self.v_bin = v_bin_mps
         self.keep = keep
+        self.hold_steps = hold_steps
+        self._bin: int | None = None
+        self._away = 0
+        self._bin_with_data: int | None = None
         self._cache: OrderedDict[tuple, GaussianProcess] = OrderedDict()
         self.last_n = 0
         self.last_version = 0
@@ -46,6 +50,26 @@ class LocalModels:
     def center_vertex(self, ctx: StepContext) -> int:
         s_mid = ctx.s_m + 0.5 * ctx.v_mps * self.horizon_s
         return int(np.clip(np.searchsorted(ctx.path.s, s_mid), 0, len(ctx.path) - 1))
+
+    def speed_bin(self, speed: float) -> int:
+        """The speed bin the window is drawn at. With `hold_steps`, it follows the speed with hysteresis:
+        a jump of two bins or more moves it at once, a neighbouring bin only once the speed has stayed
+        there for `hold_steps` calls. The window spans the bins on either side of its own, so the speed
+        still has experience around it while the window holds. For a law that chooses its own speed
+        (RC-LB-NMPC): drawn straight at the commanded speed, a speed at a bin edge flips the window
+        between two datasets every step; one of them knows the place at lower speeds and allows more
+        speed, the other not, and the plan chattered with them (0.70 / 0.85 m/s each step in a turn,
+        once leaving the heading corridor)."""
+        b = int(np.floor(speed / self.v_bin))
+        if self.hold_steps <= 0 or self._bin is None or abs(b - self._bin) >= 2:
+            self._bin, self._away = b, 0
+        elif b != self._bin:
+            self._away += 1
+            if self._away >= self.hold_steps:
+                self._bin, self._away = b, 0
+        else:
+            self._away = 0
+        return self._bin
 
     def _key(self, center: int, speed: float, h: HyperMsg, A: np.ndarray) -> tuple:
         # the window's data identity too: a refetched window after new experiences is a new model
@@ -58,11 +82,22 @@ class LocalModels:
             self.last_n = self.last_version = 0
             return None
         center = self.center_vertex(ctx)
-        A, G = self.window(center, ctx.v_mps)
+        b = self.speed_bin(ctx.v_mps)
+        speed = (b + 0.5) * self.v_bin                                # the middle of the window's bin
+        A, G = self.window(center, speed)
+        if len(A) == 0 and self.hold_steps > 0 and self._bin_with_data not in (None, b):
+            # a law that has just slowed far below where it has driven here: a window with no experience
+            # would drop the learned mean too (a rut's pull hardly depends on speed) and plan on the bare
+            # unicycle; the last speed's window still knows the place, and its variance at the new speed
+            # is the prior's wherever the data are far (uncertainty.py)
+            speed = (self._bin_with_data + 0.5) * self.v_bin
+            A, G = self.window(center, speed)
+        elif len(A):
+            self._bin_with_data = b
         self.last_n, self.last_version = len(A), h.version
         if len(A) == 0:
             return None
-        key = self._key(center, ctx.v_mps, h, A)
+        key = self._key(center, speed, h, A)
         gp = self._cache.get(key)
         if gp is not None:
             self._cache.move_to_end(key)

@@ -35,6 +35,7 @@ from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.controller.tracker import PathTracker, TrackerLimits
 
 AVAILABLE_ALGORITHMS = ("fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc")
+WINDOW_HOLD_STEPS = 5        # 0.5 s at 10 Hz (local_model.py: LocalModels.speed_bin)
 
 
 class ControllerService(Service):
@@ -146,8 +147,10 @@ class ControllerService(Service):
                 data = cache.local(vertex, speed)
                 return data.A, data.G
             # learning off: the same controller on its nominal model only
+            # the laws that choose their own speed draw the window with hysteresis (local_model.py)
             self.models = LocalModels(window, lambda: cache.hyper if self.learning else None,
-                                      settings.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps)
+                                      settings.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps,
+                                      hold_steps=WINDOW_HOLD_STEPS if algo in ("c-lb-nmpc", "rc-lb-nmpc") else 0)
         model_for = self.models.model_for if self.models else (lambda ctx: None)
         if algo == "mm-lb-nmpc":
             return MMLBNMPCLaw(settings, self.cfg.period_s, model_for), 0

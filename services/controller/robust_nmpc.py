@@ -164,7 +164,7 @@ class RCLBNMPCLaw:
         v0 = np.maximum(v, 1e-3)
 
         def attempt(k: int):
-            vk = np.clip(np.minimum(v, ladder[k] * p.v), s.v_min_mps, None)
+            vk = np.clip(ladder[k] * p.v, s.v_min_mps, None)
             self._follow_speeds(p, vk)
             wk = vk * p.kappa + (w - v * kappa0) * vk / v0     # same path, corrections scaled with speed
             X, _ = p.rollout(wk, with_jac=False, v=vk, a_out=A)

@@ -53,8 +53,10 @@ class DisturbanceVariance:
         # from the data it would claim the same uncertainty when creeping as at full speed, and a law that
         # slows down to be certain would find no speed that helps where it has not driven yet.
         sf2 = np.array([h.signal_std ** 2 for h in self.gp.hypers])
-        share = np.clip(self.gp.predict(A)[1] / sf2, 0.0, 1.0)
-        return share * std ** 2 + self.floor
+        _, latent, near = self.gp.predict(A, coverage=True)
+        prior = std ** 2
+        share = np.minimum(latent / sf2, 1.0)
+        return np.minimum(share * prior, latent + (1.0 - near) * prior) + self.floor
 
 
 def sigma_point_step(x: np.ndarray, Sigma: np.ndarray, mu: np.ndarray, var_g: np.ndarray, v: float, w: float,
