@@ -155,8 +155,14 @@ class RCLBNMPCLaw:
 
     SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)
 
-    def _speed_cap(self, p: HorizonProblem, v, w, A, gp, var, Sigma0, cap):
-        """(v, w, scale, covariances, route sigmas) of the fastest rung that fits, starting from last step's."""
+    TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's limit at its speed
+
+    def _speed_cap(self, p: HorizonProblem, v, w, A, gp, var, Sigma0, cap, w_lim_of):
+        """(v, w, scale, covariances, route sigmas) of the fastest rung that fits, starting from last step's.
+        A rung fits when its 3-sigma region stays inside the corridor and the turn rates that follow the
+        route at its speeds (with last step's corrections, scaled) keep some headroom below the drive's
+        turn-rate limit there: a plan pinned at the limit cannot correct anything (in the deepening rut
+        of exp. 2 the law held 2 m/s with its turn rate saturated and was carried off the route)."""
         s = self.settings
         ladder = self.SPEED_LADDER
         k_prev = self._rung if self._prev is not None else 0
@@ -164,13 +170,16 @@ class RCLBNMPCLaw:
         v0 = np.maximum(v, 1e-3)
 
         def attempt(k: int):
+            # the rung's own profile: tested at the warm start's speeds when those were slower, a rung
+            # "fitted" that did not, the SQP drove at it, and the next step fell back (2-step chatter)
             vk = np.clip(ladder[k] * p.v, s.v_min_mps, None)
             self._follow_speeds(p, vk)
             wk = vk * p.kappa + (w - v * kappa0) * vk / v0     # same path, corrections scaled with speed
             X, _ = p.rollout(wk, with_jac=False, v=vk, a_out=A)
             Sig, sig = horizon_sigmas(p, X, A, vk, wk, gp, var, Sigma0, s, self.dt)
             t = self.alpha * sig[1:]
-            fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2]))   # lateral, heading
+            fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])    # lateral, heading
+                        and np.all(np.abs(wk) <= self.TURN_HEADROOM * w_lim_of(vk)))
             return fits, (vk, wk, ladder[k], Sig, sig)
 
         k = max(k_prev - 1, 0)                 # try one rung faster than last step first
@@ -230,6 +239,7 @@ class RCLBNMPCLaw:
             return LawResult(0.0, 0, None, {"learned": False}, v_mps=0.0, stop_reason=f"{why}: stopped")
         # the local window is drawn around the speed the law commands (thesis 5.3.2: l from v_cmd), not the
         # schedule's: this law may drive well below the schedule, and experience there is what it needs
+        # (the node's LocalModels moves the window's speed bin with hysteresis: local_model.py)
         v_cmd = float(self._prev[0][min(1, len(self._prev[0]) - 1)]) if self._prev is not None else ctx.v_mps
         gp = self.model_for(dataclasses.replace(ctx, v_mps=v_cmd))
         p, _ = build_problem(ctx, s, self.dt, gp)
@@ -287,7 +297,7 @@ class RCLBNMPCLaw:
             # chapter's "slows down while uncertain". One rung up per step at most, as many down as needed;
             # the SQP then fine-tunes below this cap. Without it the band is infeasible at the scheduled
             # speed, the slack price dominates the cost and the plan flips between steps.
-            v, w, speed_scale, Sig, sig_start = self._speed_cap(p, v, w, A, gp, var, Sigma0, cap)
+            v, w, speed_scale, Sig, sig_start = self._speed_cap(p, v, w, A, gp, var, Sigma0, cap, w_lim_of)
             v_max = np.maximum(np.minimum(v_max, speed_scale * p.v), s.v_min_mps)
             v_start = v
         w_start = w

@@ -10,8 +10,9 @@ covariance around it.
 The a-priori uncertainty of the unicycle model per control period is `PriorStd` (growing with speed
 and turn rate); it is the variance before any experience (trial 1, or a speed never driven there). With
 a GP, the variance is that prior scaled by the share of the GP's prior variance its (latent) posterior
-keeps, plus a small `process_std` floor for what never repeats; the measurement noise sigma_n, mostly localization jitter
-between consecutive estimates, is not a disturbance of the motion and is left out.
+keeps, or, near the experiences (in the GP's own metric), the posterior variance itself where it is
+smaller; plus a small `process_std` floor for what never repeats. The measurement noise sigma_n, mostly
+localization jitter between consecutive estimates, is not a disturbance of the motion and is left out.
 """
 from __future__ import annotations
 
@@ -52,6 +53,12 @@ class DisturbanceVariance:
         # a-priori variance at these commands. The GP's own sigma_f^2 is one number for all inputs, so far
         # from the data it would claim the same uncertainty when creeping as at full speed, and a law that
         # slows down to be certain would find no speed that helps where it has not driven yet.
+        # Where the window's experiences lie close to the query, the GP's own posterior variance counts
+        # too: a disturbance the data show to be small (side slip on a flat floor, whose residuals are
+        # only localization jitter) gets a GP with sigma_f far below its noise, whose share stays ~1
+        # however much experience there is; the share alone kept the whole a-priori variance there for
+        # ever (RC-LB-NMPC never sped up in the turns of thesis exp. 1). Away from the experiences the
+        # small sigma_f, fitted where the robot did drive, claims nothing: the share rule holds there.
         sf2 = np.array([h.signal_std ** 2 for h in self.gp.hypers])
         _, latent, near = self.gp.predict(A, coverage=True)
         prior = std ** 2
