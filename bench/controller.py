@@ -6,7 +6,8 @@ with a side slope and a slip patch, then repeats it with the FL tracker at three
 so that every (vertex, speed bin) holds c_bin = 4 experiences. With c_vertex = 7 and c_velocity = 1
 the full local window is 15 x 3 x 4 = 180 experiences (the thesis's "up to 180"). Hyperparameters are
 fitted as the store fits them. Then one LB-NMPC repeat at the middle speed is timed step by step: the
-time of `law.angular` (model lookup, GP build when the window changes, problem set-up, Gauss-Newton).
+time of `law.angular` (model lookup, GP build when the window changes and the node did not build it
+after the previous command, problem set-up, the solve); `prepare_ms_p99` is that between-steps build.
 The process is pinned to one CPU and BLAS to one thread. Every n-th problem is kept and solved again by
 CasADi/IPOPT (same dynamics with the same GP mean written symbolically, same cost, same bounds, same
 start); `casadi_solve_ms_p50` is IPOPT's solve time (graph building excluded) and `cost_gap` the mean
@@ -21,6 +22,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -29,7 +31,7 @@ from bench.report import run_and_print, single_core
 from common.messages import Experience, HyperDim, HyperMsg
 from common.scenario import TerrainPatch
 from services.controller.gauss_newton import gauss_newton
-from services.controller.local_model import LocalModels
+from services.controller.local_model import LocalModels, hold_steps_for
 from services.controller.corridor import Corridor
 from services.controller.nmpc import HorizonProblem, LBNMPCLaw, NMPCSettings, build_problem
 from services.controller.minmax import SIGNS
@@ -80,11 +82,23 @@ LAWS = {"lb-nmpc": LBNMPCLaw, "mm-lb-nmpc": MMLBNMPCLaw,
         "c-lb-nmpc": lambda st, dt, m: RCLBNMPCLaw(st, dt, m, alpha=0.0), "rc-lb-nmpc": RCLBNMPCLaw}
 
 
+@dataclass
+class Timing:
+    times: np.ndarray        # ms per step: law.angular, the command's latency
+    sizes: np.ndarray        # window size per step
+    kept: list               # problems kept for the IPOPT comparison
+    evals: np.ndarray        # residual evaluations (or iterations) per step
+    statuses: list
+    prepare_ms: np.ndarray   # ms per step spent after the command on the next window's GP (node.py)
+    builds_in_step: int      # window GPs the steps still had to build themselves
+
+
 def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, settings: NMPCSettings,
-                    keep_every: int, algorithm: str = "lb-nmpc"):
+                    keep_every: int, algorithm: str = "lb-nmpc") -> Timing:
+    # the windows drawn as the node draws them (C/RC hold the window's speed bin: node.py)
     models = LocalModels(lambda v, s: windows[(v, int(math.floor(s / POLICY.v_bin_mps)))], lambda: hyper,
-                         settings.horizon * DT, POLICY.v_bin_mps)
-    times, sizes, kept, evals, statuses = [], [], [], [], []
+                         settings.horizon * DT, POLICY.v_bin_mps, hold_steps=hold_steps_for(algorithm))
+    times, sizes, kept, evals, statuses, prepare = [], [], [], [], [], []
     law = LAWS[algorithm](settings, DT, models.model_for)
     inner = law.angular
 
@@ -102,12 +116,18 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
             kept.append((ctx, models.model_for(ctx), u0))
         if algorithm != "lb-nmpc" and len(times) % keep_every == 0 and not res.stop_reason:
             kept.append((law.last_problem, times[-1]))
+        # as the node does once the command is out: the next step's window GP (not part of the step's time)
+        v = ctx.v_mps if res.v_mps is None else res.v_mps
+        t1 = time.perf_counter()
+        models.prepare(ctx.path, ctx.s_m + v * DT, v)
+        prepare.append((time.perf_counter() - t1) * 1e3)
         return res
 
     law.angular = timed
     corridor = Corridor(cl.path.s, 0.3, math.radians(20.0)) if algorithm in ("c-lb-nmpc", "rc-lb-nmpc") else None
     cl.repeat(trial + 1, SPEEDS[1], law=law, corridor=corridor)
-    return np.array(times), np.array(sizes), kept, np.array(evals), statuses
+    return Timing(np.array(times), np.array(sizes), kept, np.array(evals), statuses, np.array(prepare),
+                  models.builds - models.prepared)
 
 
 def _casadi_gp_mean(model):
@@ -317,8 +337,8 @@ def run_bench(args) -> dict:
         cl, path, hyper, windows, trials, n = build_memory(args.seed, work)
         log.info("route %.1f m, %d experiences retained from %d FL trials, hyperparameters in %.1f s (%.1f s)",
                  path.length_m, n, trials, hyper.fit_s, time.perf_counter() - t0)
-        times, sizes, kept, evals, statuses = time_controller(cl, hyper, windows, trials, settings, args.keep_every,
-                                                              args.algorithm)
+        timing = time_controller(cl, hyper, windows, trials, settings, args.keep_every, args.algorithm)
+        times, sizes, kept, evals, statuses = timing.times, timing.sizes, timing.kept, timing.evals, timing.statuses
         log.info("%s: %d steps, window mean %.0f max %d", args.algorithm, len(times), sizes.mean(), sizes.max())
         result = {"algorithm": args.algorithm, "horizon": args.horizon, "window": round(float(sizes.mean()), 1),
                   "window_max": int(sizes.max()), "solve_ms_p50": round(float(np.percentile(times, 50)), 3),
@@ -326,10 +346,12 @@ def run_bench(args) -> dict:
                   "solve_ms_mean": round(float(times.mean()), 3), "steps": len(times), "pinned": pinned,
                   "evaluations_p50": float(np.percentile(evals, 50)), "evaluations_p99": float(np.percentile(evals, 99)),
                   "not_converged": sum(s != "converged" for s in statuses), "max_evals": settings.max_evals,
+                  "prepare_ms_p99": round(float(np.percentile(timing.prepare_ms, 99)), 3),
+                  "window_builds_in_step": timing.builds_in_step,
                   "casadi_solve_ms_p50": None, "cost_gap": None}
         if args.algorithm == "mm-lb-nmpc":
             # thesis 6.4.3: the min-max extension costs 5 % more than LB-NMPC; the same repeat timed again
-            lb_times = time_controller(cl, hyper, windows, trials, settings, 10 ** 9, "lb-nmpc")[0]
+            lb_times = time_controller(cl, hyper, windows, trials, settings, 10 ** 9, "lb-nmpc").times
             result["lb_nmpc_solve_ms_p50"] = round(float(np.percentile(lb_times, 50)), 3)
             result["mm_overhead"] = round(float(np.percentile(times, 50) / np.percentile(lb_times, 50) - 1.0), 3)
         try:

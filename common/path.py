@@ -126,29 +126,34 @@ class Path:
                           distance_m=float(self.s[a] + t * self.segment_lengths[a] + along_extra),
                           lateral_m=lateral, heading_rad=float(se2.wrap(T[2] - heading)), segment=a)
 
+    def _segments(self, distance_m):
+        """Arc length(s) clamped to the route and the index of the segment each lies on."""
+        d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)
+        return d, np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2)
+
     def tangent_at(self, distance_m):
         """Direction (rad) of the route polyline at arc length(s): the segment's, not the taught
         heading (which on a slope includes the robot's crab angle)."""
-        d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)
-        a = np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2)
+        _, a = self._segments(distance_m)
         diff = self.poses[a + 1, :2] - self.poses[a, :2]
         return np.arctan2(diff[..., 1], diff[..., 0])
 
-    def heading_slope_at(self, distance_m):
-        """d(taught heading)/d(arc length) of pose_at's interpolation (rad/m): the segment's."""
-        d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)
-        a = np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2)
-        return se2.wrap(self.poses[a + 1, 2] - self.poses[a, 2]) / self.segment_lengths[a]
-
     def pose_at(self, distance_m):
         """Interpolated route pose(s) at arc length(s), clamped to the route: (3,) or (M, 3)."""
-        d = np.clip(np.asarray(distance_m, dtype=float), 0.0, self.length_m)
-        a = np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self) - 2)
+        return self.frames_at(distance_m)[0]
+
+    def frames_at(self, distance_m):
+        """(pose_at, tangent_at, d(taught heading)/d(arc length) of pose_at's interpolation in rad/m) of
+        the same arc length(s) from one segment lookup (the constrained NMPC needs all three per iterate)."""
+        d, a = self._segments(distance_m)
         t = (d - self.s[a]) / self.segment_lengths[a]
         p0, p1 = self.poses[a], self.poses[a + 1]
-        xy = p0[..., :2] + t[..., None] * (p1[..., :2] - p0[..., :2])
-        th = se2.wrap(p0[..., 2] + t * se2.wrap(p1[..., 2] - p0[..., 2]))
-        return np.concatenate([xy, np.asarray(th)[..., None]], axis=-1)
+        diff = p1 - p0
+        dth = se2.wrap(diff[..., 2])
+        xy = p0[..., :2] + t[..., None] * diff[..., :2]
+        th = se2.wrap(p0[..., 2] + t * dth)
+        pose = np.concatenate([xy, np.asarray(th)[..., None]], axis=-1)
+        return pose, np.arctan2(diff[..., 1], diff[..., 0]), dth / self.segment_lengths[a]
 
 
 class RouteRecorder:

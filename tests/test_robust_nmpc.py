@@ -308,6 +308,31 @@ def test_robust_law_holds_one_speed_where_nothing_changes():
         assert speeds[-1] < 0.9
 
 
+def test_robust_law_keeps_turn_rate_headroom_where_slowing_down_gives_it():
+    """In a wide corridor (uncertainty fits at full speed) a turn whose rate at the scheduled speed is
+    above 90 % of a skid-steer's turn-rate limit is driven on a slower rung of the ladder, one that
+    leaves the headroom; an Ackermann's curvature limit, which binds at every speed alike, slows
+    nothing (the ladder would otherwise run to its bottom rung for no gain)."""
+    path = arc_path()                                          # the turn: 1.2 rad over 15 m, 0.08 1/m
+    wide = Corridor(path.s, 1.0, math.radians(60))
+    pose = path.pose_at(20.0)
+    kappa = 1.2 / 15.0
+
+    def run(w_limit_at):
+        ctx = dataclasses.replace(ctx_for(path, pose, v=1.0, corridor=wide, prev_cmd=(1.0, kappa)),
+                                  w_limit=w_limit_at(1.0), w_limit_at=w_limit_at)
+        return RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT).angular(ctx)
+
+    free = run(lambda v: 2.0)
+    assert free.info["speed_scale"] == 1.0 and free.v_mps > 0.95
+    w_max = 1.05 * kappa                                       # the route's rate at 1 m/s is 95 % of it
+    skid = run(lambda v: w_max)
+    assert skid.info["speed_scale"] < 1.0 and skid.v_mps <= 0.9 * w_max / kappa + 0.02
+    assert skid.v_mps > 0.6                                    # one rung down, not the bottom of the ladder
+    ackermann = run(lambda v: min(2.0, abs(v) * w_max))        # max curvature 1.05 x the route's
+    assert ackermann.info["speed_scale"] == 1.0 and ackermann.v_mps > 0.95
+
+
 def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit():
     path = arc_path()
     corridor = Corridor(path.s, 0.2, math.radians(15))

@@ -27,6 +27,13 @@ def hypers_of(msg: HyperMsg) -> list[SEHyper]:
 
 
 log = logging.getLogger(__name__)
+WINDOW_HOLD_STEPS = 5        # 0.5 s at 10 Hz (LocalModels.speed_bin)
+
+
+def hold_steps_for(algorithm: str) -> int:
+    """The laws that choose their own speed (C/RC) draw the window with hysteresis; the others at the
+    scheduled speed as it comes."""
+    return WINDOW_HOLD_STEPS if algorithm in ("c-lb-nmpc", "rc-lb-nmpc") else 0
 
 
 class LocalModels:
@@ -45,11 +52,15 @@ class LocalModels:
         self.last_n = 0
         self.last_version = 0
         self.builds = 0
+        self.prepared = 0          # of the builds, those done by `prepare` between steps
         self.failures = 0
 
     def center_vertex(self, ctx: StepContext) -> int:
-        s_mid = ctx.s_m + 0.5 * ctx.v_mps * self.horizon_s
-        return int(np.clip(np.searchsorted(ctx.path.s, s_mid), 0, len(ctx.path) - 1))
+        return self._center(ctx.path, ctx.s_m, ctx.v_mps)
+
+    def _center(self, path, s_m: float, v_mps: float) -> int:
+        s_mid = s_m + 0.5 * v_mps * self.horizon_s
+        return int(np.clip(np.searchsorted(path.s, s_mid), 0, len(path) - 1))
 
     def speed_bin(self, speed: float) -> int:
         """The speed bin the window is drawn at. With `hold_steps`, it follows the speed with hysteresis:
@@ -83,6 +94,29 @@ class LocalModels:
             return None
         center = self.center_vertex(ctx)
         b = self.speed_bin(ctx.v_mps)
+        speed, A, G = self._window_at(center, b)
+        if len(A):
+            self._bin_with_data = int(np.floor(speed / self.v_bin))
+        self.last_n, self.last_version = len(A), h.version
+        return self._gp(center, speed, h, A, G)
+
+    def prepare(self, path, s_m: float, v_mps: float) -> None:
+        """Build, between control steps, the GP of the window the next step will most likely ask for
+        (where the robot will be after this command, at this speed; the speed bin as it stands): a new
+        window's GP (1-2 ms) then no longer delays the command of the step that enters it. If the next
+        step asks for another window after all, it builds that one itself, as without this call."""
+        h = self.hyper()
+        if h is None:
+            return
+        center = self._center(path, s_m, v_mps)
+        b = self._bin if self.hold_steps > 0 and self._bin is not None else int(np.floor(v_mps / self.v_bin))
+        speed, A, G = self._window_at(center, b)
+        before = self.builds
+        self._gp(center, speed, h, A, G)
+        self.prepared += self.builds - before
+
+    def _window_at(self, center: int, b: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """(the speed it is drawn at, A, G): the window of speed bin b around vertex `center`."""
         speed = (b + 0.5) * self.v_bin                                # the middle of the window's bin
         A, G = self.window(center, speed)
         if len(A) == 0 and self.hold_steps > 0 and self._bin_with_data not in (None, b):
@@ -92,9 +126,10 @@ class LocalModels:
             # is the prior's wherever the data are far (uncertainty.py)
             speed = (self._bin_with_data + 0.5) * self.v_bin
             A, G = self.window(center, speed)
-        elif len(A):
-            self._bin_with_data = b
-        self.last_n, self.last_version = len(A), h.version
+        return speed, A, G
+
+    def _gp(self, center: int, speed: float, h: HyperMsg, A: np.ndarray, G: np.ndarray) -> GaussianProcess | None:
+        """The window's GP, from the cache or built now (None: no data, or it cannot be built)."""
         if len(A) == 0:
             return None
         key = self._key(center, speed, h, A)

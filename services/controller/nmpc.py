@@ -370,8 +370,9 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
         v[j] = ctx.v_mps if j == 0 else ctx.speed_at(s_d[j])
         (vb, _), xi = lag.step(xi, (v[j], 0.0))
         s_d[j + 1] = s_d[j] + vb * dt     # where the robot gets to at these speeds (its lag included)
-    desired = path.pose_at(s_d)          # taught headings: what the heading error is measured against
-    tangent = path.tangent_at(s_d)       # route direction: what along/lateral errors are measured along
+    # taught headings: what the heading error is measured against; route direction: what along and
+    # lateral errors are measured along
+    desired, tangent, _ = path.frames_at(s_d)
     kappa = np.interp(s_d[:-1], path.s, path.curvature)
     w_ref = v * kappa
     w_limit = np.array([ctx.w_limit_at(vj) for vj in v])

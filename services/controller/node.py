@@ -29,13 +29,12 @@ from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
 from services.controller.ilc import ILCLaw, ILCMemory
 from services.controller.laws import FLLaw, SteeringLaw
-from services.controller.local_model import LocalModels
+from services.controller.local_model import LocalModels, hold_steps_for
 from services.controller.nmpc import LBNMPCLaw
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.controller.tracker import PathTracker, TrackerLimits
 
 AVAILABLE_ALGORITHMS = ("fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc")
-WINDOW_HOLD_STEPS = 5        # 0.5 s at 10 Hz (local_model.py: LocalModels.speed_bin)
 
 
 class ControllerService(Service):
@@ -147,10 +146,9 @@ class ControllerService(Service):
                 data = cache.local(vertex, speed)
                 return data.A, data.G
             # learning off: the same controller on its nominal model only
-            # the laws that choose their own speed draw the window with hysteresis (local_model.py)
             self.models = LocalModels(window, lambda: cache.hyper if self.learning else None,
                                       settings.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps,
-                                      hold_steps=WINDOW_HOLD_STEPS if algo in ("c-lb-nmpc", "rc-lb-nmpc") else 0)
+                                      hold_steps=hold_steps_for(algo))
         model_for = self.models.model_for if self.models else (lambda ctx: None)
         if algo == "mm-lb-nmpc":
             return MMLBNMPCLaw(settings, self.cfg.period_s, model_for), 0
@@ -228,6 +226,9 @@ class ControllerService(Service):
         t0 = time.perf_counter()
         d, obs = self.core.step(now_s, tick, loc)
         solve_ms = (time.perf_counter() - t0) * 1e3
+        # the command first: everything below is bookkeeping that must not delay it
+        self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
+                                                      v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
         window_n, hyper_version = 0, 0
         if self.outbox is not None:
             if obs is not None:
@@ -243,8 +244,6 @@ class ControllerService(Service):
                 window_n = len(self.cache.local(d.vertex, speed).A)
                 hyper_version = self.cache.hyper.version if self.cache.hyper is not None else 0
         pred = d.predicted if d.predicted is not None else np.zeros((0, 3))
-        self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
-                                                      v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
         info = d.info or {}
         status = ControllerStatus(
             stamp_s=now_s, tick=tick, trial=self.trial, algorithm=self.cfg.algorithm, state=d.state,
@@ -261,6 +260,9 @@ class ControllerService(Service):
             solver_status=str(info.get("status", "")))
         # the command must arrive; a status may be dropped under congestion rather than stall the loop
         self.node.publish(self.k_status, status, droppable=True)
+        if self.models is not None and d.v_mps > 0:
+            # the next window's GP now, while the robot drives on this command (local_model.py)
+            self.models.prepare(self.core.path, d.distance_m + d.v_mps * self.cfg.period_s, d.v_mps)
 
     def close(self) -> None:
         if self.cache is not None:

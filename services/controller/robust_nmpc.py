@@ -47,11 +47,6 @@ def _variance_model(gp, s: NMPCSettings) -> DisturbanceVariance:
                                             per_radps=s.prior_std_per_radps), s.process_std)
 
 
-def _disturbances(gp, A: np.ndarray, var: DisturbanceVariance) -> tuple[np.ndarray, np.ndarray]:
-    mean = np.zeros((len(A), 3)) if gp is None else gp.predict(A)[0]
-    return mean, var(A)
-
-
 def initial_covariance(ctx: StepContext, problem: HorizonProblem, gp, var: DisturbanceVariance,
                        s: NMPCSettings, dt: float) -> np.ndarray:
     """The localizer's covariance, carried through the periods of localization delay (eq. 7.12)."""
@@ -59,7 +54,7 @@ def initial_covariance(ctx: StepContext, problem: HorizonProblem, gp, var: Distu
     trace = getattr(problem, "delay_trace", [])
     if trace:
         A = np.array([t[1] for t in trace])
-        G, V = _disturbances(gp, A, var)
+        G, V = var.with_mean(A)
         for (x, _a, v, w), g, vg in zip(trace, G, V):
             Sigma = sigma_point_step(x, Sigma, g, vg, v, w, dt, s.sp_gamma)
     return Sigma
@@ -68,7 +63,7 @@ def initial_covariance(ctx: StepContext, problem: HorizonProblem, gp, var: Distu
 def horizon_sigmas(problem: HorizonProblem, X: np.ndarray, A: np.ndarray, v: np.ndarray, w: np.ndarray, gp,
                    var: DisturbanceVariance, Sigma0: np.ndarray, s: NMPCSettings, dt: float):
     """Covariances (K+1, 3, 3) and the route-frame standard deviations (K, 3) of x_1..x_K."""
-    G, V = _disturbances(gp, A, var)
+    G, V = var.with_mean(A)
     vb, wb = problem.effective(v, w)          # the robot moves at these (the drive's lag)
     Sig = propagate(X, A, G, V, vb, wb, Sigma0, dt, s.sp_gamma)
     direction = np.arctan2(problem.sinD[1:], problem.cD[1:])
@@ -145,24 +140,25 @@ class RCLBNMPCLaw:
         s_d = p.sD[0] + np.concatenate([[0.0], np.cumsum(p.effective(v)[0]) * p.dt])
         if np.array_equal(s_d, p.sD) and hasattr(p, "heading_slope"):
             return
-        D = p.path.pose_at(s_d)
+        D, direction, slope = p.path.frames_at(s_d)
         D[:, 2] = p.D[0, 2] + np.unwrap(D[:, 2] - p.D[0, 2])
-        direction = p.path.tangent_at(s_d)
         p.D, p.sD, p.cD, p.sinD = D, s_d, np.cos(direction), np.sin(direction)
         p.kappa = np.interp(s_d[:-1], p.path.s, p.path.curvature)
-        p.heading_slope = p.path.heading_slope_at(s_d[1:])
+        p.heading_slope = slope[1:]
         p._memo = []
 
     SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)
 
     TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's limit at its speed
 
-    def _speed_cap(self, p: HorizonProblem, v, w, A, gp, var, Sigma0, cap, w_lim_of):
+    def _speed_cap(self, p: HorizonProblem, v, w, A, gp, var, Sigma0, cap, w_rate_cap: float):
         """(v, w, scale, covariances, route sigmas) of the fastest rung that fits, starting from last step's.
         A rung fits when its 3-sigma region stays inside the corridor and the turn rates that follow the
         route at its speeds (with last step's corrections, scaled) keep some headroom below the drive's
-        turn-rate limit there: a plan pinned at the limit cannot correct anything (in the deepening rut
-        of exp. 2 the law held 2 m/s with its turn rate saturated and was carried off the route)."""
+        turn-rate limit `w_rate_cap`: a plan pinned at the limit cannot correct anything (in the deepening
+        rut of exp. 2 the law held 2 m/s with its turn rate saturated and was carried off the route). Only
+        the rate limit counts here, the one slowing down relieves; an Ackermann's curvature limit binds
+        at every speed alike (the SQP keeps to it), and testing it would send the ladder to its bottom."""
         s = self.settings
         ladder = self.SPEED_LADDER
         k_prev = self._rung if self._prev is not None else 0
@@ -175,11 +171,12 @@ class RCLBNMPCLaw:
             vk = np.clip(ladder[k] * p.v, s.v_min_mps, None)
             self._follow_speeds(p, vk)
             wk = vk * p.kappa + (w - v * kappa0) * vk / v0     # same path, corrections scaled with speed
-            X, _ = p.rollout(wk, with_jac=False, v=vk, a_out=A)
+            # with the sensitivities: the rung that fits is the SQP's first iterate (rollout's memo)
+            X = p.rollout(wk, with_jac=True, v=vk, with_v_jac=True, a_out=A)[0]
             Sig, sig = horizon_sigmas(p, X, A, vk, wk, gp, var, Sigma0, s, self.dt)
             t = self.alpha * sig[1:]
             fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])    # lateral, heading
-                        and np.all(np.abs(wk) <= self.TURN_HEADROOM * w_lim_of(vk)))
+                        and np.all(np.abs(wk) <= self.TURN_HEADROOM * w_rate_cap))
             return fits, (vk, wk, ladder[k], Sig, sig)
 
         k = max(k_prev - 1, 0)                 # try one rung faster than last step first
@@ -255,7 +252,8 @@ class RCLBNMPCLaw:
         self._follow_speeds(p, v)
         lo_lat, hi_lat, head_lim = corridor.at(p.sD[1:])
         alpha = self.alpha
-        w_lim_of = np.vectorize(lambda vj: ctx.w_limit_at(max(vj, s.v_min_mps)))
+        def w_lim_of(v: np.ndarray) -> np.ndarray:
+            return np.array([ctx.w_limit_at(max(vj, s.v_min_mps)) for vj in v.tolist()])
         v_start = v
         # the covariance is propagated once per step, around the warm start; within the solve the lateral
         # sigma follows the speeds to first order (it moves little otherwise, and this keeps the per-step
@@ -297,7 +295,9 @@ class RCLBNMPCLaw:
             # chapter's "slows down while uncertain". One rung up per step at most, as many down as needed;
             # the SQP then fine-tunes below this cap. Without it the band is infeasible at the scheduled
             # speed, the slack price dominates the cost and the plan flips between steps.
-            v, w, speed_scale, Sig, sig_start = self._speed_cap(p, v, w, A, gp, var, Sigma0, cap, w_lim_of)
+            # the drive's turn-rate limit at any speed (its curvature limit, if any, left out: w_limit_at(inf))
+            w_rate_cap = ctx.w_limit_at(math.inf)
+            v, w, speed_scale, Sig, sig_start = self._speed_cap(p, v, w, A, gp, var, Sigma0, cap, w_rate_cap)
             v_max = np.maximum(np.minimum(v_max, speed_scale * p.v), s.v_min_mps)
             v_start = v
         w_start = w
@@ -318,7 +318,10 @@ class RCLBNMPCLaw:
             self._qp = CorridorQP(K, s.slack_weight)
         trust_v, trust_w = 0.5, 1.0
         iters, status = 0, "budget"
+        evals = 1                       # residual evaluations: max_evals bounds the step's time, as for LB/MM
         for it in range(s.sqp_iter):
+            if evals >= s.max_evals:
+                break
             iters = it + 1
             v, w = cur["v"], cur["w"]
             w_lim = w_lim_of(v)
@@ -332,12 +335,18 @@ class RCLBNMPCLaw:
                 break
             accepted = None
             for beta in (1.0, 0.5, 0.25):                 # eq. 7.11's beta, by the merit function
+                if evals >= s.max_evals:
+                    break
                 cand = evaluate(np.clip(v + beta * dx[:K], s.v_min_mps, v_max), w + beta * dx[K:])
+                evals += 1
                 if cand["merit"] < cur["merit"] - 1e-12:
                     accepted = cand
                     break
             if accepted is None:
-                status = "converged" if np.max(np.abs(dx)) < 10 * s.tol else "stalled"
+                if np.max(np.abs(dx)) < 10 * s.tol:
+                    status = "converged"
+                elif evals < s.max_evals:
+                    status = "stalled"
                 break
             step = max(np.max(np.abs(accepted["v"] - v)), np.max(np.abs(accepted["w"] - w)))
             cur = accepted
@@ -355,6 +364,7 @@ class RCLBNMPCLaw:
         self.last_plan = Plan(w, X, p.D, float(0.5 * r @ r), iters, status == "converged")
         return LawResult(float(w[0]), iters, X[1:],
                          {"cost": float(0.5 * r @ r), "converged": status == "converged", "status": status,
+                          "evaluations": evals,
                           "learned": gp is not None, "violation": slack_used, "speed_scale": speed_scale,
                           "sigma_lat_max_m": float(sig[:, 1].max()), "sigma_head_max_rad": float(sig[:, 2].max())},
                          v_mps=float(v[0]))

@@ -44,10 +44,14 @@ class DisturbanceVariance:
         self.floor = np.square(np.asarray(process_std, dtype=float))
 
     def __call__(self, A: np.ndarray) -> np.ndarray:
+        return self.with_mean(A)[1]
+
+    def with_mean(self, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the GP's posterior mean, zero without a GP; the variance) from one GP prediction."""
         std = (np.asarray(self.prior.base) + np.outer(np.abs(A[:, 5]), self.prior.per_mps)
                + np.outer(np.abs(A[:, 6]), self.prior.per_radps))
         if self.gp is None:
-            return std ** 2 + self.floor
+            return np.zeros((len(A), 3)), std ** 2 + self.floor
         # what experience has taught, as the share of the a-priori variance it leaves (the GP's posterior
         # over its prior sigma_f^2: ~0 next to repeated experiences, 1 far from them), applied to the
         # a-priori variance at these commands. The GP's own sigma_f^2 is one number for all inputs, so far
@@ -60,10 +64,10 @@ class DisturbanceVariance:
         # ever (RC-LB-NMPC never sped up in the turns of thesis exp. 1). Away from the experiences the
         # small sigma_f, fitted where the robot did drive, claims nothing: the share rule holds there.
         sf2 = np.array([h.signal_std ** 2 for h in self.gp.hypers])
-        _, latent, near = self.gp.predict(A, coverage=True)
+        mean, latent, near = self.gp.predict(A, coverage=True)
         prior = std ** 2
         share = np.minimum(latent / sf2, 1.0)
-        return np.minimum(share * prior, latent + (1.0 - near) * prior) + self.floor
+        return mean, np.minimum(share * prior, latent + (1.0 - near) * prior) + self.floor
 
 
 def sigma_point_step(x: np.ndarray, Sigma: np.ndarray, mu: np.ndarray, var_g: np.ndarray, v: float, w: float,
