@@ -74,3 +74,24 @@ def test_with_hysteresis_an_empty_window_falls_back_to_the_last_one_with_experie
     nothing = LocalModels(store.window, hyper, 1.0, V_BIN)
     nothing.model_for(ctx(path, 1.9))
     assert nothing.model_for(ctx(path, 0.3)) is None     # the thesis's window: no experience, no model
+
+
+def test_prepare_builds_the_next_steps_window_so_the_step_does_not():
+    """The node calls `prepare` after publishing a command: the window GP where the robot will be next is
+    built then, and the next step finds it (no build inside the step); a step that ends up elsewhere
+    builds its own, as before."""
+    import dataclasses
+    path, store = straight(), Store(range(10))
+    for hold in (0, 5):
+        models = LocalModels(store.window, hyper, 1.0, V_BIN, hold_steps=hold)
+        here = ctx(path, 0.8)
+        first = models.model_for(here)
+        assert models.builds == 1 and first is not None
+        nxt = dataclasses.replace(here, s_m=here.s_m + 0.3)              # the next window's centre vertex
+        assert models.center_vertex(nxt) != models.center_vertex(here)
+        models.prepare(path, nxt.s_m, 0.8)
+        assert models.builds == 2 and models.prepared == 1
+        gp = models.model_for(nxt)
+        assert models.builds == 2 and gp is not None and gp is not first
+        models.model_for(dataclasses.replace(here, s_m=here.s_m + 2.0))   # not prepared: built in the step
+        assert models.builds == 3 and models.prepared == 1
