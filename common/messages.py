@@ -307,10 +307,16 @@ class Experience(Message):
     v_cmd_mps: float
     a: tuple[float, ...]
     g: tuple[float, ...]
+    # the nominal model g is the residual of (services/controller/experience.py: model_tag); the store
+    # keeps each model's experiences apart: a retuned drive lag makes the old residuals wrong. "": unknown
+    # (recorded before tags existed)
+    model: str = ""
 
     def __post_init__(self):
         check_name("robot", self.robot)
         check_name("path_id", self.path_id)
+        if self.model:
+            check_name("model", self.model)
         _check_vector("a", self.a, A_DIM)
         _check_vector("g", self.g, G_DIM)
         if self.vertex < 0 or self.seq < 0:

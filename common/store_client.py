@@ -31,9 +31,10 @@ log = logging.getLogger(__name__)
 
 class ExperienceOutbox:
     def __init__(self, node: Node, robot: str, *, resend_after_s: float = 2.0, max_pending: int = 200_000,
-                 max_batch: int = 500, source: str | None = None):
+                 max_batch: int = 500, source: str | None = None, model: str = ""):
         self.node = node
         self.robot = robot
+        self.model = model            # the nominal model `add`'s experiences are residuals of
         self.source = source or f"{robot}-{uuid.uuid4().hex[:12]}"
         self.resend_after_s = resend_after_s
         self.max_pending = max_pending
@@ -65,7 +66,7 @@ class ExperienceOutbox:
     def add(self, *, stamp_s: float, trial: int, path_id: str, vertex: int, v_cmd_mps: float, a, g) -> Experience:
         with self._lock:
             exp = Experience(stamp_s=stamp_s, robot=self.robot, trial=trial, path_id=path_id, seq=self._seq,
-                             vertex=vertex, v_cmd_mps=v_cmd_mps, a=tuple(a), g=tuple(g))
+                             vertex=vertex, v_cmd_mps=v_cmd_mps, a=tuple(a), g=tuple(g), model=self.model)
             self._seq += 1
             self._new.append(exp)
             return exp
@@ -132,8 +133,9 @@ class LocalData:
 
 class WindowCache:
     def __init__(self, session: zenoh.Session, *, v_bin_mps: float = 0.25, c_vertex: int = 5, c_velocity: int = 1,
-                 lookahead_vertices: int = 20, query_timeout_s: float = 2.0):
+                 lookahead_vertices: int = 20, query_timeout_s: float = 2.0, model: str = ""):
         self.session = session
+        self.model = model            # windows hold only this nominal model's experiences
         self.v_bin = v_bin_mps
         self.cv = c_vertex
         self.cl = c_velocity
@@ -268,6 +270,8 @@ class WindowCache:
     def _fetch(self, path_id: str, center: int, speed: float) -> None:
         self.queries += 1
         selector = f"{keys.store_window(path_id)}?vertex={center}&speed={speed:.6f}"
+        if self.model:
+            selector += f"&model={self.model}"
         window = None
         for rep in self.session.get(selector, timeout=self.timeout):
             if rep.ok is None:

@@ -6,6 +6,7 @@ import sys
 import time
 from pathlib import Path as FsPath
 
+import msgpack
 import numpy as np
 from mcap.reader import make_reader
 from mcap.writer import Writer
@@ -39,6 +40,8 @@ def _stats(session, _args) -> int:
 
 def _query(session, args) -> int:
     sel = f"{keys.store_window(args.path)}?vertex={args.vertex}&speed={args.speed}"
+    if args.model:
+        sel += f"&model={args.model}"
     try:
         w = query_one(session, sel, ExperienceWindow, timeout_s=5.0)
     except LookupError as exc:
@@ -99,6 +102,24 @@ def _export(session, args) -> int:
     return 0
 
 
+def _decode_batch(data: bytes) -> ExperienceBatch:
+    """One exported batch. An export written before experiences carried their nominal model (their
+    maps have no "model") is read with model "" (unknown); anything else malformed is an error."""
+    try:
+        return decode(ExperienceBatch, data)
+    except DecodeError:
+        try:
+            body = msgpack.unpackb(data, raw=False)
+        except Exception:
+            raise DecodeError("not valid msgpack") from None
+        exps = body.get("experiences") if isinstance(body, dict) else None
+        if not isinstance(exps, list) or not all(isinstance(e, dict) and "model" not in e for e in exps):
+            raise
+        for e in exps:
+            e["model"] = ""
+        return decode(ExperienceBatch, msgpack.packb(body, use_bin_type=True))
+
+
 def _import(session, args, endpoint: str) -> int:
     batches = []
     with open(args.file, "rb") as fh:
@@ -106,7 +127,7 @@ def _import(session, args, endpoint: str) -> int:
             if channel.message_encoding != "msgpack" or not channel.topic.endswith("/experiences"):
                 continue
             try:
-                batches.append(decode(ExperienceBatch, message.data))
+                batches.append(_decode_batch(message.data))
             except DecodeError as exc:
                 raise StoreCliError(f"{args.file}: bad experience batch on {channel.topic}: {exc}") from None
     if not batches:
@@ -142,6 +163,8 @@ def add_parser(sub) -> None:
     q.add_argument("--path", required=True)
     q.add_argument("--vertex", type=int, required=True)
     q.add_argument("--speed", type=float, required=True)
+    q.add_argument("--model", default="", help="the nominal model's experiences (e.g. unicycle-dt100ms-tauv0ms-"
+                                               "tauw400ms; default: that of the route's newest experience)")
     q.add_argument("--json", action="store_true", help="print every experience as JSON")
     f = common(store.add_parser("fit", help="fit GP hyperparameters now and wait for them"))
     f.add_argument("--path", required=True)

@@ -1,4 +1,5 @@
 """Experiences (eq. 5.15, 5.17) from estimates and commands, and the store's database core."""
+import dataclasses
 import math
 
 import numpy as np
@@ -6,6 +7,7 @@ import pytest
 
 from common.messages import Experience
 from common.path import Path
+from services.controller.actuator import ActuatorLag
 from services.controller.experience import ExperienceBuilder, body_residual, body_velocity, unicycle_step
 from services.gp_store.db import BinPolicy, ExperienceDB
 
@@ -109,3 +111,61 @@ def test_database_survives_reopening_and_versions_hyperparameters(tmp_path):
     assert A.shape == (20, 9) and G[7, 0] == pytest.approx(0.007)
     assert len(set(tiles.tolist())) == 2   # vertices 0..19 in tiles of 2 * 5 + 1 vertices
     assert [e.seq for _, src, e in db.experiences("p", limit=5)] == [0, 1, 2, 3, 4]
+
+
+def test_each_nominal_model_keeps_its_own_bins_windows_and_fit_data(tmp_path):
+    """A retuned drive lag changes the model the residuals g are measured against: the store keeps each
+    model's experiences apart (bins, eviction, windows) and fits on the model of the newest ones."""
+    old, new = ActuatorLag(0.0, 0.0, 0.1).model_tag, ActuatorLag(0.0, 0.4, 0.1).model_tag
+    assert old == "unicycle-dt100ms-tauv0ms-tauw0ms" and new != old
+    db = ExperienceDB(tmp_path / "x.db", BinPolicy(c_bin=3, c_vertex=0, c_velocity=0))
+    db.ingest("s1", [dataclasses.replace(exp(i, vertex=0), model=old) for i in range(5)])
+    assert db.current_model("p") == old and len(db.all_of("p")[0]) == 3
+    db.ingest("s2", [dataclasses.replace(exp(i, vertex=0), model=new) for i in range(2)])
+    # the new model's two did not evict the old model's three, and each window sees only its own
+    assert len(db.window("p", 0, 0.5, model=old).A) == 3 and len(db.window("p", 0, 0.5, model=new).A) == 2
+    assert len(db.window("p", 0, 0.5, model="").A) == 0                         # untagged: none here
+    assert len(db.window("p", 0, 0.5).A) == 2                                   # default: the current model
+    assert db.current_model("p") == new and len(db.all_of("p")[0]) == 2 and db.count("p", old) == 3
+    assert {e.model for _, _, e in db.experiences("p")} == {old, new}
+    with pytest.raises(ValueError):
+        dataclasses.replace(exp(0, vertex=0), model="tau=0.4 s")                # not a plain name
+
+
+def test_a_schema_1_database_is_migrated_in_place_with_its_experiences_untagged(tmp_path):
+    import sqlite3
+    path = tmp_path / "v1.db"
+    con = sqlite3.connect(path)
+    con.executescript("""
+        CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+        INSERT INTO meta VALUES ('schema', '1');
+        CREATE TABLE experiences (id INTEGER PRIMARY KEY AUTOINCREMENT, path_id TEXT NOT NULL,
+            vertex INTEGER NOT NULL, speed_bin INTEGER NOT NULL, robot TEXT NOT NULL, trial INTEGER NOT NULL,
+            source TEXT NOT NULL, seq INTEGER NOT NULL, stamp_s REAL NOT NULL, v_cmd_mps REAL NOT NULL,
+            a BLOB NOT NULL, g BLOB NOT NULL);
+        CREATE INDEX bins ON experiences (path_id, vertex, speed_bin, id);""")
+    a, g = np.arange(9, dtype="<f8").tobytes(), np.zeros(3, dtype="<f8").tobytes()
+    con.execute("INSERT INTO experiences (path_id, vertex, speed_bin, robot, trial, source, seq, stamp_s, v_cmd_mps, "
+                "a, g) VALUES ('p', 0, 2, 'r1', 1, 's1', 0, 0.0, 0.5, ?, ?)", (a, g))
+    con.commit()
+    con.close()
+    db = ExperienceDB(path, BinPolicy(c_vertex=0, c_velocity=0))
+    assert db.window("p", 0, 0.5).A.tolist() == [list(range(9))] and db.current_model("p") == ""
+    db.ingest("s2", [dataclasses.replace(exp(1, vertex=0), model="unicycle-dt100ms-tauv0ms-tauw0ms")])
+    db.close()
+    db = ExperienceDB(path)                                          # reopened: schema 2 now, both kept
+    assert db.stats()[0]["retained"] == 2 and db.current_model("p") == "unicycle-dt100ms-tauv0ms-tauw0ms"
+
+
+def test_an_export_written_before_model_tags_imports_untagged():
+    import msgpack
+    from common.codec import encode
+    from common.messages import ExperienceBatch
+    from deploy.store_cli import _decode_batch
+    body = msgpack.unpackb(encode(ExperienceBatch(stamp_s=1.0, robot="r1", source="s1", experiences=[exp(0, 0)])))
+    del body["experiences"][0]["model"]                             # as the previous version wrote it
+    batch = _decode_batch(msgpack.packb(body))
+    assert batch.experiences[0].model == "" and batch.experiences[0].seq == 0
+    body["experiences"][0]["a"] = [float("nan")] * 9                 # still checked like any other batch
+    with pytest.raises(Exception):
+        _decode_batch(msgpack.packb(body))

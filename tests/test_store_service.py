@@ -169,6 +169,31 @@ def test_cache_prefetches_windows_and_fits_on_request(rig):
         cache.close()
 
 
+def test_windows_over_the_bus_hold_only_the_asking_controllers_nominal_model(rig):
+    """Two controllers whose drive lags differ feed the same route; each one's window cache (and a plain
+    window query naming a model) gets only experiences of its own model."""
+    boxes = {m: ExperienceOutbox(rig.node, "r1", model=m) for m in ("unicycle-tauw0ms", "unicycle-tauw400ms")}
+    for k, (m, box) in enumerate(boxes.items()):
+        for i in range(30):
+            box.add(stamp_s=0.1 * i, trial=1, path_id="dur", vertex=i, v_cmd_mps=0.5, a=[float(k)] * 9,
+                    g=[0.0, 0.0, 0.0])
+        assert box.wait_acked(30)
+    w = query_one(rig.node.session, f"{keys.store_window('dur')}?vertex=10&speed=0.5&model=unicycle-tauw0ms",
+                  ExperienceWindow)
+    assert len(w.vertices) == 11 and set(np.frombuffer(w.a_f64)) == {0.0}
+    cache = WindowCache(rig.node.session, lookahead_vertices=10, model="unicycle-tauw400ms")
+    try:
+        cache.set_route("dur", N_VERTICES)
+        cache.set_position(10, 0.5)
+        wait_until(lambda: cache.local(10, 0.5).missing_bins == 0, 10, "prefetch of the window")
+        local = cache.local(10, 0.5)
+        assert len(local.A) == 11 and np.all(local.A == 1.0)
+    finally:
+        cache.close()
+    with pytest.raises(Exception, match="model"):
+        query_one(rig.node.session, f"{keys.store_window('dur')}?vertex=10&speed=0.5&model=a.b", ExperienceWindow)
+
+
 def test_two_stores_split_the_routes_between_them(tmp_path):
     from common.bus import query
     from common.messages import StoreStats

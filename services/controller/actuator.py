@@ -44,6 +44,13 @@ class ActuatorLag:
             raise ValueError("actuator time constants must be >= 0 and the period > 0")
 
     @property
+    def model_tag(self) -> str:
+        """The nominal model the experiences' residuals are measured against (eq. 5.17 with this lag), as
+        a name: the store keeps each model's experiences apart (common/messages.py Experience.model)."""
+        ms = lambda x: int(round(1000 * x))     # noqa: E731
+        return f"unicycle-dt{ms(self.dt)}ms-tauv{ms(self.tau_v_s)}ms-tauw{ms(self.tau_w_s)}ms"
+
+    @property
     def active(self) -> bool:
         return self.tau_v_s > 0.0 or self.tau_w_s > 0.0
 

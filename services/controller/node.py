@@ -68,9 +68,12 @@ class ControllerService(Service):
                                     lim.max_curvature_per_m if lim.max_curvature_per_m > 0 else math.inf)
         self.gains = FLGains(cfg.fl.gamma1, cfg.fl.gamma2, cfg.fl.curvature_feedforward)
         st = cfg.store
-        self.outbox = ExperienceOutbox(node, r, resend_after_s=st.resend_after_s) if st.enabled else None
-        self.cache = WindowCache(node.session, v_bin_mps=st.v_bin_mps, c_vertex=st.c_vertex,
-                                 c_velocity=st.c_velocity, lookahead_vertices=st.lookahead_vertices) if st.enabled else None
+        # experiences are residuals of this nominal model, and only this model's are learned from
+        self.model_tag = cfg.nmpc.lag(cfg.period_s).model_tag
+        self.outbox = ExperienceOutbox(node, r, resend_after_s=st.resend_after_s,
+                                       model=self.model_tag) if st.enabled else None
+        self.cache = WindowCache(node.session, v_bin_mps=st.v_bin_mps, c_vertex=st.c_vertex, c_velocity=st.c_velocity,
+                                 lookahead_vertices=st.lookahead_vertices, model=self.model_tag) if st.enabled else None
 
     # --- control -----------------------------------------------------------------------------
     def on_control(self, ctl: Control) -> None:

@@ -5,10 +5,17 @@ keeps only its newest `c_bin` experiences (thesis 5.3.2): constant-size local mo
 experiences of a changing world (ruts) are forgotten. Experiences from every robot on a route share
 the bins (fleet learning). `ingest` returns only after the commit, so whatever it reports as stored
 survives a crash. A (source, seq) pair is stored once, ever, so producers may safely re-send.
+
+Each experience carries the nominal model it is a residual of (`Experience.model`): the bins are kept
+per model, a window holds one model's experiences, and hyperparameters are fitted on the model of a
+route's newest experiences. A controller whose drive lag was retuned thus starts learning afresh while
+the old model's experiences stay on file (and count again if the old model comes back). Experiences
+from before tags existed (schema 1 files, migrated in place) have model "".
 """
 from __future__ import annotations
 
 import json
+import logging
 import math
 import sqlite3
 import threading
@@ -19,7 +26,8 @@ import numpy as np
 
 from common.messages import A_DIM, G_DIM, Experience
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+log = logging.getLogger(__name__)
 
 _SCHEMA = f"""
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -28,10 +36,10 @@ CREATE TABLE IF NOT EXISTS experiences (
     path_id TEXT NOT NULL, vertex INTEGER NOT NULL, speed_bin INTEGER NOT NULL,
     robot TEXT NOT NULL, trial INTEGER NOT NULL, source TEXT NOT NULL, seq INTEGER NOT NULL,
     stamp_s REAL NOT NULL, v_cmd_mps REAL NOT NULL,
-    a BLOB NOT NULL CHECK (length(a) = {8 * A_DIM}), g BLOB NOT NULL CHECK (length(g) = {8 * G_DIM}));
+    a BLOB NOT NULL CHECK (length(a) = {8 * A_DIM}), g BLOB NOT NULL CHECK (length(g) = {8 * G_DIM}),
+    model TEXT NOT NULL DEFAULT '');
 -- every (source, seq) ever stored, evicted or not: a late re-send is recognised, never stored twice
 CREATE TABLE IF NOT EXISTS seen (source TEXT NOT NULL, seq INTEGER NOT NULL, PRIMARY KEY (source, seq)) WITHOUT ROWID;
-CREATE INDEX IF NOT EXISTS bins ON experiences (path_id, vertex, speed_bin, id);
 CREATE TABLE IF NOT EXISTS ingested (path_id TEXT PRIMARY KEY, total INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS hypers (
     path_id TEXT NOT NULL, version INTEGER NOT NULL, stamp_s REAL NOT NULL, body TEXT NOT NULL,
@@ -78,8 +86,28 @@ class ExperienceDB:
         row = self._db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
         if row is None:
             self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
+        elif int(row[0]) == 1:
+            self._migrate_from_1()
         elif int(row[0]) != SCHEMA_VERSION:
             raise RuntimeError(f"{self.path}: schema version {row[0]}, this store reads {SCHEMA_VERSION}")
+        self._db.execute("CREATE INDEX IF NOT EXISTS model_bins ON experiences (path_id, model, vertex, speed_bin, id)")
+
+    def _migrate_from_1(self) -> None:
+        """Schema 1 -> 2: the model column (existing experiences: model ""), in one transaction."""
+        cur = self._db.cursor()
+        cur.execute("BEGIN IMMEDIATE")
+        try:
+            if "model" not in [r[1] for r in cur.execute("PRAGMA table_info(experiences)")]:
+                cur.execute("ALTER TABLE experiences ADD COLUMN model TEXT NOT NULL DEFAULT ''")
+            cur.execute("DROP INDEX IF EXISTS bins")
+            cur.execute("UPDATE meta SET value=? WHERE key='schema'", (str(SCHEMA_VERSION),))
+            cur.execute("COMMIT")
+        except BaseException:
+            cur.execute("ROLLBACK")
+            raise
+        (n,) = self._db.execute("SELECT COUNT(*) FROM experiences").fetchone()
+        log.info("%s: migrated from schema 1 to %d; its %d experiences have no model tag (model '')", self.path,
+                 SCHEMA_VERSION, n)
 
     def close(self) -> None:
         with self._lock, self._rlock:
@@ -94,7 +122,7 @@ class ExperienceDB:
             return []
         p = self.policy
         rows = [(e.path_id, e.vertex, p.speed_bin(e.v_cmd_mps), e.robot, e.trial, source, e.seq, e.stamp_s,
-                 e.v_cmd_mps, np.asarray(e.a, dtype="<f8").tobytes(), np.asarray(e.g, dtype="<f8").tobytes())
+                 e.v_cmd_mps, np.asarray(e.a, dtype="<f8").tobytes(), np.asarray(e.g, dtype="<f8").tobytes(), e.model)
                 for e in experiences]
         with self._lock:
             cur = self._db.cursor()
@@ -106,15 +134,15 @@ class ExperienceDB:
                     if cur.rowcount == 0:
                         continue  # a re-send of something already stored (and perhaps since evicted)
                     cur.execute("INSERT INTO experiences (path_id, vertex, speed_bin, robot, trial, source, seq, "
-                                "stamp_s, v_cmd_mps, a, g) VALUES (?,?,?,?,?,?,?,?,?,?,?)", r)
+                                "stamp_s, v_cmd_mps, a, g, model) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)", r)
                     new_per_path[r[0]] = new_per_path.get(r[0], 0) + 1
                 cur.executemany("INSERT INTO ingested VALUES (?, ?) ON CONFLICT(path_id) "
                                 "DO UPDATE SET total = total + excluded.total", list(new_per_path.items()))
-                for path_id, vertex, speed_bin in {(r[0], r[1], r[2]) for r in rows}:
-                    cur.execute("DELETE FROM experiences WHERE path_id=? AND vertex=? AND speed_bin=? AND id NOT IN "
-                                "(SELECT id FROM experiences WHERE path_id=? AND vertex=? AND speed_bin=? "
-                                "ORDER BY id DESC LIMIT ?)", (path_id, vertex, speed_bin, path_id, vertex, speed_bin,
-                                                              p.c_bin))
+                for path_id, vertex, speed_bin, model in {(r[0], r[1], r[2], r[11]) for r in rows}:
+                    bin_ = (path_id, model, vertex, speed_bin)
+                    cur.execute("DELETE FROM experiences WHERE path_id=? AND model=? AND vertex=? AND speed_bin=? AND "
+                                "id NOT IN (SELECT id FROM experiences WHERE path_id=? AND model=? AND vertex=? AND "
+                                "speed_bin=? ORDER BY id DESC LIMIT ?)", bin_ + bin_ + (p.c_bin,))
                 cur.execute("COMMIT")
             except BaseException:
                 cur.execute("ROLLBACK")
@@ -138,27 +166,44 @@ class ExperienceDB:
 
     # --- reading ------------------------------------------------------------------------------
     def window(self, path_id: str, vertex: int, v_cmd_mps: float, c_vertex: int | None = None,
-               c_velocity: int | None = None) -> Window:
-        """The local dataset of eq. 5.3.2: bins of vertices i +- c_vertex and speed bins l +- c_velocity."""
+               c_velocity: int | None = None, model: str | None = None) -> Window:
+        """The local dataset of eq. 5.3.2: bins of vertices i +- c_vertex and speed bins l +- c_velocity,
+        of one nominal model's experiences (default: `current_model`)."""
+        model = self.current_model(path_id) if model is None else model
         p = self.policy
         cv = p.c_vertex if c_vertex is None else c_vertex
         cl = p.c_velocity if c_velocity is None else c_velocity
         l = p.speed_bin(v_cmd_mps)
         lo, hi, blo, bhi = vertex - cv, vertex + cv, l - cl, l + cl
         with self._rlock:
-            rows = self._rdb.execute("SELECT vertex, speed_bin, a, g FROM experiences WHERE path_id=? AND vertex "
-                                    "BETWEEN ? AND ? AND speed_bin BETWEEN ? AND ? ORDER BY id",
-                                    (path_id, lo, hi, blo, bhi)).fetchall()
+            rows = self._rdb.execute("SELECT vertex, speed_bin, a, g FROM experiences WHERE path_id=? AND model=? "
+                                    "AND vertex BETWEEN ? AND ? AND speed_bin BETWEEN ? AND ? ORDER BY id",
+                                    (path_id, model, lo, hi, blo, bhi)).fetchall()
         return Window(lo, hi, blo, bhi, np.array([r[0] for r in rows], dtype=int),
                       np.array([r[1] for r in rows], dtype=int), _stack([r[2] for r in rows], A_DIM),
                       _stack([r[3] for r in rows], G_DIM))
 
-    def all_of(self, path_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Every retained experience of a route as (A, G, window tile label), for hyperparameter
-        fitting: the tiles are disjoint windows of the size the controller uses (5.3.2)."""
+    def current_model(self, path_id: str) -> str:
+        """The nominal model of a route's newest experience ("" without any)."""
         with self._rlock:
-            rows = self._rdb.execute("SELECT a, g, vertex, speed_bin FROM experiences WHERE path_id=? ORDER BY id",
-                                     (path_id,)).fetchall()
+            row = self._rdb.execute("SELECT model FROM experiences WHERE path_id=? ORDER BY id DESC LIMIT 1",
+                                    (path_id,)).fetchone()
+        return row[0] if row else ""
+
+    def count(self, path_id: str, model: str) -> int:
+        """Retained experiences of a route and nominal model."""
+        with self._rlock:
+            return self._rdb.execute("SELECT COUNT(*) FROM experiences WHERE path_id=? AND model=?",
+                                     (path_id, model)).fetchone()[0]
+
+    def all_of(self, path_id: str, model: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every retained experience of a route and one nominal model (default: `current_model`) as
+        (A, G, window tile label), for hyperparameter fitting: the tiles are disjoint windows of the size
+        the controller uses (5.3.2)."""
+        model = self.current_model(path_id) if model is None else model
+        with self._rlock:
+            rows = self._rdb.execute("SELECT a, g, vertex, speed_bin FROM experiences WHERE path_id=? AND model=? "
+                                     "ORDER BY id", (path_id, model)).fetchall()
         p = self.policy
         tiles = np.array([(r[2] // (2 * p.c_vertex + 1)) * 100_000 + (r[3] // (2 * p.c_velocity + 1)) for r in rows],
                          dtype=np.int64)
@@ -167,12 +212,12 @@ class ExperienceDB:
     def experiences(self, path_id: str, after_id: int = 0, limit: int = 5000) -> list[tuple[int, str, Experience]]:
         """Stored experiences as (row id, source, experience), in insertion order (for export)."""
         with self._rlock:
-            rows = self._rdb.execute("SELECT id, robot, trial, path_id, seq, vertex, v_cmd_mps, stamp_s, a, g, source "
-                                    "FROM experiences WHERE path_id=? AND id > ? ORDER BY id LIMIT ?",
+            rows = self._rdb.execute("SELECT id, robot, trial, path_id, seq, vertex, v_cmd_mps, stamp_s, a, g, source, "
+                                    "model FROM experiences WHERE path_id=? AND id > ? ORDER BY id LIMIT ?",
                                     (path_id, after_id, limit)).fetchall()
         return [(r[0], r[10], Experience(stamp_s=r[7], robot=r[1], trial=r[2], path_id=r[3], seq=r[4], vertex=r[5],
                                          v_cmd_mps=r[6], a=tuple(np.frombuffer(r[8], "<f8").tolist()),
-                                         g=tuple(np.frombuffer(r[9], "<f8").tolist()))) for r in rows]
+                                         g=tuple(np.frombuffer(r[9], "<f8").tolist()), model=r[11])) for r in rows]
 
     def latest_hyper(self, path_id: str) -> dict | None:
         with self._rlock:
@@ -194,7 +239,7 @@ class ExperienceDB:
     def max_bin_count(self, path_id: str) -> int:
         with self._rlock:
             row = self._rdb.execute("SELECT MAX(n) FROM (SELECT COUNT(*) AS n FROM experiences WHERE path_id=? "
-                                   "GROUP BY vertex, speed_bin)", (path_id,)).fetchone()
+                                   "GROUP BY model, vertex, speed_bin)", (path_id,)).fetchone()
         return row[0] or 0
 
 

@@ -2,7 +2,9 @@
 
 - ingests `lbc/*/experience` batches (any robot) for the routes it serves, in group commits, and
   acknowledges each stored seq on `lbc/<robot>/experience/ack` only after the commit;
-- answers local-window queries `lbc/store/<path>/window?vertex=i&speed=v` (and `hyper`, `dump`, `stats`);
+- answers local-window queries `lbc/store/<path>/window?vertex=i&speed=v[&model=m]` (one nominal
+  model's experiences, db.py; without `model`, those of the route's newest experience; and `hyper`,
+  `dump`, `stats`);
 - fits GP hyperparameters in a worker process after a repeat trial ends (or on a `fit` query) and
   publishes the new version on `lbc/store/<path>/hyper`.
 
@@ -178,7 +180,11 @@ class StoreService(Service):
                 raise ValueError("vertex must be >= 0 and speed finite")
             cv = params.get("c_vertex")
             cl = params.get("c_velocity")
-            w = self.db.window(path_id, vertex, speed, None if cv is None else int(cv), None if cl is None else int(cl))
+            model = params.get("model")           # the asking controller's nominal model (db.py); none given:
+            if model:                               # the route's current one
+                check_name("model", model)
+            w = self.db.window(path_id, vertex, speed, None if cv is None else int(cv), None if cl is None else int(cl),
+                               model=model)
             query.reply(keys.store_window(path_id), encode(ExperienceWindow(
                 stamp_s=time.time(), path_id=path_id, vertex_lo=w.vertex_lo, vertex_hi=w.vertex_hi, bin_lo=w.bin_lo,
                 bin_hi=w.bin_hi, v_bin_mps=self.policy.v_bin_mps, vertices=w.vertices.tolist(),
@@ -228,7 +234,7 @@ class StoreService(Service):
             if ev.event == "ended" and ev.mode == "repeat" and self.cfg.fit.auto_after_trial and self.serves(ev.path_id):
                 self._ingest_pending(timeout=0.0)
                 state = self.fits.get(ev.path_id, _FitState())
-                retained = next((s["retained"] for s in self.db.stats() if s["path_id"] == ev.path_id), 0)
+                retained = self.db.count(ev.path_id, self.db.current_model(ev.path_id))
                 if abs(retained - state.retained_at_fit) >= self.cfg.fit.min_new or state.running is not None:
                     self._start_fit(ev.path_id)
         elif key == "fit":
@@ -251,7 +257,8 @@ class StoreService(Service):
         if state.running is not None:
             state.rerun = True  # fit again with what arrives meanwhile once this one is done
             return
-        A, G, tiles = self.db.all_of(path_id)
+        model = self.db.current_model(path_id)
+        A, G, tiles = self.db.all_of(path_id, model)
         if len(A) == 0:
             for q in state.waiting:
                 q.reply_err(f"no experiences for {path_id}".encode())
@@ -264,7 +271,8 @@ class StoreService(Service):
             # spawn, not fork: the parent has Zenoh threads
             self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                                 initializer=die_with_parent, initargs=(os.getpid(),))
-        self.log.info("fitting GP hyperparameters for %s on %d experiences", path_id, len(A))
+        self.log.info("fitting GP hyperparameters for %s on %d experiences (nominal model %s)", path_id, len(A),
+                      model or "untagged")
         state.retained_at_fit = len(A)
         state.running = self._pool.submit(fit_route, path_id, A, G, tiles if f.local_windows else None,
                                           f.restarts, f.max_points, f.seed, prev["dims"] if prev else None,
