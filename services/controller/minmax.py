@@ -136,10 +136,12 @@ def solve_minmax(problem, bound: np.ndarray, w0: np.ndarray, lower: np.ndarray, 
             if evals >= max_evals:
                 break
             cand = w + beta * d
-            c_new = boundary_costs(problem, bound, cand, False)
+            # with the gradients at once: most candidates are accepted, and the next QP needs them there
+            c_new, G_new, H_new = boundary_costs(problem, bound, cand, True)
             evals += 1
             if c_new.max() < best - 1e-12:
                 w, best, accepted = cand, float(c_new.max()), True
+                costs, G, H = c_new, G_new, H_new
                 break
         if not accepted:
             status = "converged" if np.max(np.abs(d)) < 10 * tol else "stalled"
@@ -147,8 +149,4 @@ def solve_minmax(problem, bound: np.ndarray, w0: np.ndarray, lower: np.ndarray, 
             if evals >= max_evals or trust < tol:
                 break
             continue
-        if evals >= max_evals:
-            break
-        costs, G, H = boundary_costs(problem, bound, w, True)
-        evals += 1
     return GNResult(w, best, it, status == "converged", evals, status)
