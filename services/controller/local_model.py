@@ -1,9 +1,11 @@
 """The disturbance model the NMPC uses at each step: a GP on the local window of experiences around
 the middle of its horizon (thesis 5.3.2), with the store's latest hyperparameters.
 
-A window's GP (three Cholesky factorizations, ~0.4 ms for 180 experiences) is built once and reused
-while the robot stays in it. (Building the next one on a background thread was tried and made the loop
-slower: Python threads contend for the interpreter.) With no hyperparameters or no experiences, or if a
+A window's GP (three Cholesky factorizations, 0.4-2 ms for 180 experiences) is built once and reused
+while the robot stays in it. The node builds the next step's window on its own thread once the command
+is out (`prepare`), so entering a new window does not delay a command. (Building it on a background
+thread was tried and made the loop slower: Python threads contend for the interpreter.) With no
+hyperparameters or no experiences, or if a
 window's GP cannot be built, there is no model and the controller runs on the nominal unicycle, which
 is exactly the thesis's first trial.
 """
