@@ -47,7 +47,7 @@ def _variance_model(gp, s: NMPCSettings) -> DisturbanceVariance:
                                             per_radps=s.prior_std_per_radps), s.process_std)
 
 
-def initial_covariance(ctx: StepContext, problem: HorizonProblem, gp, var: DisturbanceVariance,
+def initial_covariance(ctx: StepContext, problem: HorizonProblem, var: DisturbanceVariance,
                        s: NMPCSettings, dt: float) -> np.ndarray:
     """The localizer's covariance, carried through the periods of localization delay (eq. 7.12)."""
     Sigma = np.array(ctx.pose_cov, dtype=float) if ctx.pose_cov is not None else np.diag([1e-4, 1e-4, 1e-4])
@@ -60,7 +60,7 @@ def initial_covariance(ctx: StepContext, problem: HorizonProblem, gp, var: Distu
     return Sigma
 
 
-def horizon_sigmas(problem: HorizonProblem, X: np.ndarray, A: np.ndarray, v: np.ndarray, w: np.ndarray, gp,
+def horizon_sigmas(problem: HorizonProblem, X: np.ndarray, A: np.ndarray, v: np.ndarray, w: np.ndarray,
                    var: DisturbanceVariance, Sigma0: np.ndarray, s: NMPCSettings, dt: float):
     """Covariances (K+1, 3, 3) and the route-frame standard deviations (K, 3) of x_1..x_K."""
     G, V = var.with_mean(A)
@@ -92,8 +92,8 @@ class MMLBNMPCLaw:
         u0 = np.clip(u0, -w_limit, w_limit)
         A = np.empty((problem.K, 9))
         X0, _ = problem.rollout(u0, with_jac=True, a_out=A)     # Gauss-Newton's first residual reuses it
-        Sigma0 = initial_covariance(ctx, problem, gp, var, s, self.dt)
-        _, sig = horizon_sigmas(problem, X0, A, problem.v, u0, gp, var, Sigma0, s, self.dt)
+        Sigma0 = initial_covariance(ctx, problem, var, s, self.dt)
+        _, sig = horizon_sigmas(problem, X0, A, problem.v, u0, var, Sigma0, s, self.dt)
         bound = s.mm_sigmas * sig                                   # (K, 3)
         self.last_sigmas = sig
         # eq. 6.3-6.6: the min-max over all eight boundary sequences at once, from the warm start
@@ -149,9 +149,9 @@ class RCLBNMPCLaw:
 
     SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)
 
-    TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's limit at its speed
+    TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's turn-rate limit
 
-    def _speed_cap(self, p: HorizonProblem, v, w, A, gp, var, Sigma0, cap, w_rate_cap: float):
+    def _speed_cap(self, p: HorizonProblem, v, w, A, var, Sigma0, cap, w_rate_cap: float):
         """(v, w, scale, covariances, route sigmas) of the fastest rung that fits, starting from last step's.
         A rung fits when its 3-sigma region stays inside the corridor and the turn rates that follow the
         route at its speeds (with last step's corrections, scaled) keep some headroom below the drive's
@@ -173,7 +173,7 @@ class RCLBNMPCLaw:
             wk = vk * p.kappa + (w - v * kappa0) * vk / v0     # same path, corrections scaled with speed
             # with the sensitivities: the rung that fits is the SQP's first iterate (rollout's memo)
             X = p.rollout(wk, with_jac=True, v=vk, with_v_jac=True, a_out=A)[0]
-            Sig, sig = horizon_sigmas(p, X, A, vk, wk, gp, var, Sigma0, s, self.dt)
+            Sig, sig = horizon_sigmas(p, X, A, vk, wk, var, Sigma0, s, self.dt)
             t = self.alpha * sig[1:]
             fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])    # lateral, heading
                         and np.all(np.abs(wk) <= self.TURN_HEADROOM * w_rate_cap))
@@ -242,7 +242,7 @@ class RCLBNMPCLaw:
         p, _ = build_problem(ctx, s, self.dt, gp)
         K, dt = p.K, self.dt
         var = _variance_model(gp, s)
-        Sigma0 = initial_covariance(ctx, p, gp, var, s, dt)
+        Sigma0 = initial_covariance(ctx, p, var, s, dt)
         v_max = np.minimum(np.full(K, ctx.v_max_mps), np.maximum(p.v, s.v_min_mps))   # never above the desired
         if self._prev is not None:
             v = np.clip(np.concatenate([self._prev[0][1:], self._prev[0][-1:]]), s.v_min_mps, v_max)
@@ -297,7 +297,7 @@ class RCLBNMPCLaw:
             # speed, the slack price dominates the cost and the plan flips between steps.
             # the drive's turn-rate limit at any speed (its curvature limit, if any, left out: w_limit_at(inf))
             w_rate_cap = ctx.w_limit_at(math.inf)
-            v, w, speed_scale, Sig, sig_start = self._speed_cap(p, v, w, A, gp, var, Sigma0, cap, w_rate_cap)
+            v, w, speed_scale, Sig, sig_start = self._speed_cap(p, v, w, A, var, Sigma0, cap, w_rate_cap)
             v_max = np.maximum(np.minimum(v_max, speed_scale * p.v), s.v_min_mps)
             v_start = v
         w_start = w
