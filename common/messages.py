@@ -397,9 +397,14 @@ class HyperMsg(Message):
     fit_s: float
     lml: list[float]
     dims: list[HyperDim]
+    # the nominal model of the experiences they were fitted on (Experience.model): a controller uses
+    # only its own model's
+    model: str = ""
 
     def __post_init__(self):
         _check_vector("dims", self.dims, G_DIM)
+        if self.model:
+            check_name("model", self.model)
 
 
 @dataclass(frozen=True, kw_only=True)

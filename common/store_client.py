@@ -135,7 +135,8 @@ class WindowCache:
     def __init__(self, session: zenoh.Session, *, v_bin_mps: float = 0.25, c_vertex: int = 5, c_velocity: int = 1,
                  lookahead_vertices: int = 20, query_timeout_s: float = 2.0, model: str = ""):
         self.session = session
-        self.model = model            # windows hold only this nominal model's experiences
+        # windows and hyperparameters of this nominal model's experiences only ("": the route's newest)
+        self.model = model
         self.v_bin = v_bin_mps
         self.cv = c_vertex
         self.cl = c_velocity
@@ -214,6 +215,8 @@ class WindowCache:
         except DecodeError as exc:
             log.warning("rejected hyperparameters on %s: %s", sample.key_expr, exc)
             return
+        if self.model and msg.model != self.model:      # fitted on another nominal model's residuals
+            return
         if msg.path_id == self._path_id and (self._hyper is None or msg.version > self._hyper.version):
             self._hyper = msg
 
@@ -243,7 +246,8 @@ class WindowCache:
         path_id = self._path_id
         if path_id is None or self._hyper is not None:
             return
-        for rep in self.session.get(keys.store_hyper(path_id), timeout=self.timeout):
+        selector = keys.store_hyper(path_id) + (f"?model={self.model}" if self.model else "")
+        for rep in self.session.get(selector, timeout=self.timeout):
             if rep.ok is not None:
                 self._on_hyper(rep.ok)
 

@@ -67,8 +67,8 @@ def _fit(session, args) -> int:
         h = query_one(session, keys.store_fit(args.path), HyperMsg, timeout_s=args.timeout)
     except LookupError as exc:
         raise StoreCliError(str(exc)) from None
-    print(f"{args.path}: hyperparameters v{h.version} from {h.n_used}/{h.n_total} experiences, fit {h.fit_s:.1f} s "
-          f"({time.monotonic() - t0:.1f} s wall)")
+    print(f"{args.path}: hyperparameters v{h.version} from {h.n_used}/{h.n_total} experiences of nominal model "
+          f"{h.model or 'untagged'}, fit {h.fit_s:.1f} s ({time.monotonic() - t0:.1f} s wall)")
     for name, dim, lml in zip(G_NAMES, h.dims, h.lml):
         ells = ", ".join(f"{n}={v:.3g}" for n, v in zip(A_NAMES, dim.lengthscales))
         print(f"  {name:12s} sigma_f={dim.signal_std:.3g} sigma_n={dim.noise_std:.3g} LML={lml:.1f}\n    lengthscales: {ells}")

@@ -132,6 +132,17 @@ def test_each_nominal_model_keeps_its_own_bins_windows_and_fit_data(tmp_path):
         dataclasses.replace(exp(0, vertex=0), model="tau=0.4 s")                # not a plain name
 
 
+def test_hyperparameters_are_kept_per_nominal_model_with_versions_counted_per_route(tmp_path):
+    db = ExperienceDB(tmp_path / "x.db")
+    assert db.save_hyper("p", {"lml": [1.0], "model": "m-a"}, 1.0) == 1
+    assert db.save_hyper("p", {"lml": [2.0], "model": "m-b"}, 2.0) == 2
+    assert db.save_hyper("p", {"lml": [3.0], "model": "m-a"}, 3.0) == 3
+    assert db.save_hyper("q", {"lml": [4.0]}, 4.0) == 1                  # another route counts its own
+    assert db.latest_hyper("p", "m-a")["lml"] == [3.0] and db.latest_hyper("p", "m-b")["version"] == 2
+    assert db.latest_hyper("p", "m-c") is None and db.latest_hyper("p")["model"] == "m-a"
+    assert db.latest_hyper("q", "") == {"lml": [4.0], "version": 1, "model": ""}
+
+
 def test_a_schema_1_database_is_migrated_in_place_with_its_experiences_untagged(tmp_path):
     import sqlite3
     path = tmp_path / "v1.db"
@@ -153,8 +164,32 @@ def test_a_schema_1_database_is_migrated_in_place_with_its_experiences_untagged(
     assert db.window("p", 0, 0.5).A.tolist() == [list(range(9))] and db.current_model("p") == ""
     db.ingest("s2", [dataclasses.replace(exp(1, vertex=0), model="unicycle-dt100ms-tauv0ms-tauw0ms")])
     db.close()
-    db = ExperienceDB(path)                                          # reopened: schema 2 now, both kept
+    db = ExperienceDB(path)                                          # reopened: schema 3 now, both kept
     assert db.stats()[0]["retained"] == 2 and db.current_model("p") == "unicycle-dt100ms-tauv0ms-tauw0ms"
+
+
+def test_a_schema_2_database_keeps_its_hyperparameters_untagged(tmp_path):
+    import json
+    import sqlite3
+    path = tmp_path / "v2.db"
+    db = ExperienceDB(path)
+    db.ingest("s1", [exp(0, vertex=0)])
+    db.close()
+    con = sqlite3.connect(path)                       # back to how schema 2 stored hyperparameters
+    con.executescript("""DROP TABLE hypers;
+        CREATE TABLE hypers (path_id TEXT NOT NULL, version INTEGER NOT NULL, stamp_s REAL NOT NULL,
+            body TEXT NOT NULL, PRIMARY KEY (path_id, version));
+        UPDATE meta SET value='2' WHERE key='schema';""")
+    con.execute("INSERT INTO hypers VALUES ('p', 1, 0.0, ?)", (json.dumps({"lml": [1.0], "version": 1}),))
+    con.commit()
+    con.close()
+    db = ExperienceDB(path)
+    assert db.latest_hyper("p", "") == {"lml": [1.0], "version": 1, "model": ""}
+    assert db.save_hyper("p", {"lml": [2.0], "model": "m-a"}, 1.0) == 2 and db.latest_hyper("p", "m-a")["version"] == 2
+    db.close()
+    con = sqlite3.connect(path)
+    assert con.execute("SELECT value FROM meta WHERE key='schema'").fetchone() == ("3",)
+    con.close()
 
 
 def test_an_export_written_before_model_tags_imports_untagged():

@@ -169,9 +169,10 @@ def test_cache_prefetches_windows_and_fits_on_request(rig):
         cache.close()
 
 
-def test_windows_over_the_bus_hold_only_the_asking_controllers_nominal_model(rig):
+def test_windows_and_hyperparameters_over_the_bus_are_the_asking_controllers_nominal_models(rig):
     """Two controllers whose drive lags differ feed the same route; each one's window cache (and a plain
-    window query naming a model) gets only experiences of its own model."""
+    window query naming a model) gets only experiences of its own model, and only hyperparameters fitted
+    on its own model's experiences."""
     boxes = {m: ExperienceOutbox(rig.node, "r1", model=m) for m in ("unicycle-tauw0ms", "unicycle-tauw400ms")}
     for k, (m, box) in enumerate(boxes.items()):
         for i in range(30):
@@ -192,6 +193,32 @@ def test_windows_over_the_bus_hold_only_the_asking_controllers_nominal_model(rig
         cache.close()
     with pytest.raises(Exception, match="model"):
         query_one(rig.node.session, f"{keys.store_window('dur')}?vertex=10&speed=0.5&model=a.b", ExperienceWindow)
+
+    # the fit is on the newest experiences' model (tauw400ms) and says so
+    h1 = query_one(rig.node.session, keys.store_fit("dur"), HyperMsg, timeout_s=300)
+    assert h1.model == "unicycle-tauw400ms" and h1.n_total == 30
+    caches = {m: WindowCache(rig.node.session, lookahead_vertices=10, model=m) for m in boxes}
+    try:
+        for c in caches.values():
+            c.set_route("dur", N_VERTICES)
+        wait_until(lambda: caches["unicycle-tauw400ms"].hyper is not None, 10, "tauw400ms hyperparameters")
+        with pytest.raises(LookupError, match="tauw0ms"):
+            query_one(rig.node.session, f"{keys.store_hyper('dur')}?model=unicycle-tauw0ms", HyperMsg)
+        assert caches["unicycle-tauw0ms"].hyper is None           # nothing fitted on its experiences yet
+        # tauw0ms drives again: its model is the newest, the next fit is its own; the other keeps v1
+        boxes["unicycle-tauw0ms"].add(stamp_s=9.0, trial=2, path_id="dur", vertex=31, v_cmd_mps=0.5, a=[0.0] * 9,
+                                      g=[0.0, 0.0, 0.0])
+        assert boxes["unicycle-tauw0ms"].wait_acked(30)
+        h2 = query_one(rig.node.session, keys.store_fit("dur"), HyperMsg, timeout_s=300)
+        assert h2.model == "unicycle-tauw0ms" and h2.version == h1.version + 1 and h2.n_total == 31
+        wait_until(lambda: caches["unicycle-tauw0ms"].hyper is not None, 10, "tauw0ms hyperparameters")
+        assert caches["unicycle-tauw0ms"].hyper.version == h2.version
+        assert caches["unicycle-tauw400ms"].hyper.version == h1.version   # the publication of v2 was not for it
+        plain = query_one(rig.node.session, keys.store_hyper("dur"), HyperMsg)   # no model: the newest's
+        assert plain.version == h2.version
+    finally:
+        for c in caches.values():
+            c.close()
 
 
 def test_two_stores_split_the_routes_between_them(tmp_path):

@@ -7,10 +7,11 @@ the bins (fleet learning). `ingest` returns only after the commit, so whatever i
 survives a crash. A (source, seq) pair is stored once, ever, so producers may safely re-send.
 
 Each experience carries the nominal model it is a residual of (`Experience.model`): the bins are kept
-per model, a window holds one model's experiences, and hyperparameters are fitted on the model of a
-route's newest experiences. A controller whose drive lag was retuned thus starts learning afresh while
-the old model's experiences stay on file (and count again if the old model comes back). Experiences
-from before tags existed (schema 1 files, migrated in place) have model "".
+per model, a window holds one model's experiences, hyperparameters are fitted on the model of a
+route's newest experiences and kept per model (their version numbers count per route, across models).
+A controller whose drive lag was retuned thus starts learning afresh while the old model's experiences
+and hyperparameters stay on file (and count again if the old model comes back). Experiences and
+hyperparameters from before tags existed (schema 1 and 2 files, migrated in place) have model "".
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ import numpy as np
 
 from common.messages import A_DIM, G_DIM, Experience
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 log = logging.getLogger(__name__)
 
 _SCHEMA = f"""
@@ -43,7 +44,7 @@ CREATE TABLE IF NOT EXISTS seen (source TEXT NOT NULL, seq INTEGER NOT NULL, PRI
 CREATE TABLE IF NOT EXISTS ingested (path_id TEXT PRIMARY KEY, total INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS hypers (
     path_id TEXT NOT NULL, version INTEGER NOT NULL, stamp_s REAL NOT NULL, body TEXT NOT NULL,
-    PRIMARY KEY (path_id, version));
+    model TEXT NOT NULL DEFAULT '', PRIMARY KEY (path_id, version));
 """
 
 
@@ -86,19 +87,21 @@ class ExperienceDB:
         row = self._db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
         if row is None:
             self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
-        elif int(row[0]) == 1:
-            self._migrate_from_1()
+        elif int(row[0]) in (1, 2):
+            self._migrate_from(int(row[0]))
         elif int(row[0]) != SCHEMA_VERSION:
             raise RuntimeError(f"{self.path}: schema version {row[0]}, this store reads {SCHEMA_VERSION}")
         self._db.execute("CREATE INDEX IF NOT EXISTS model_bins ON experiences (path_id, model, vertex, speed_bin, id)")
 
-    def _migrate_from_1(self) -> None:
-        """Schema 1 -> 2: the model column (existing experiences: model ""), in one transaction."""
+    def _migrate_from(self, version: int) -> None:
+        """Schema 1 -> 3 (model column of experiences) and 2 -> 3 (model column of hyperparameters),
+        in one transaction; what was stored before has model ""."""
         cur = self._db.cursor()
         cur.execute("BEGIN IMMEDIATE")
         try:
-            if "model" not in [r[1] for r in cur.execute("PRAGMA table_info(experiences)")]:
-                cur.execute("ALTER TABLE experiences ADD COLUMN model TEXT NOT NULL DEFAULT ''")
+            for table in ("experiences", "hypers"):
+                if "model" not in [r[1] for r in cur.execute(f"PRAGMA table_info({table})")]:
+                    cur.execute(f"ALTER TABLE {table} ADD COLUMN model TEXT NOT NULL DEFAULT ''")
             cur.execute("DROP INDEX IF EXISTS bins")
             cur.execute("UPDATE meta SET value=? WHERE key='schema'", (str(SCHEMA_VERSION),))
             cur.execute("COMMIT")
@@ -106,8 +109,9 @@ class ExperienceDB:
             cur.execute("ROLLBACK")
             raise
         (n,) = self._db.execute("SELECT COUNT(*) FROM experiences").fetchone()
-        log.info("%s: migrated from schema 1 to %d; its %d experiences have no model tag (model '')", self.path,
-                 SCHEMA_VERSION, n)
+        (h,) = self._db.execute("SELECT COUNT(*) FROM hypers").fetchone()
+        log.info("%s: migrated from schema %d to %d; its %d experiences and %d hyperparameter sets have no model "
+                 "tag (model '')", self.path, version, SCHEMA_VERSION, n, h)
 
     def close(self) -> None:
         with self._lock, self._rlock:
@@ -150,14 +154,18 @@ class ExperienceDB:
         return [e.seq for e in experiences]
 
     def save_hyper(self, path_id: str, body: dict, stamp_s: float) -> int:
+        """Store a fit (body["model"]: the nominal model of the experiences it was fitted on, default
+        ""); returns its version, one more than the route's newest of any model."""
+        model = str(body.get("model", ""))
         with self._lock:
             cur = self._db.cursor()
             cur.execute("BEGIN IMMEDIATE")
             try:
                 (version,) = cur.execute("SELECT COALESCE(MAX(version), 0) + 1 FROM hypers WHERE path_id=?",
                                          (path_id,)).fetchone()
-                body = dict(body, version=version)
-                cur.execute("INSERT INTO hypers VALUES (?, ?, ?, ?)", (path_id, version, stamp_s, json.dumps(body)))
+                body = dict(body, version=version, model=model)
+                cur.execute("INSERT INTO hypers (path_id, version, stamp_s, body, model) VALUES (?, ?, ?, ?, ?)",
+                            (path_id, version, stamp_s, json.dumps(body), model))
                 cur.execute("COMMIT")
             except BaseException:
                 cur.execute("ROLLBACK")
@@ -219,11 +227,14 @@ class ExperienceDB:
                                          v_cmd_mps=r[6], a=tuple(np.frombuffer(r[8], "<f8").tolist()),
                                          g=tuple(np.frombuffer(r[9], "<f8").tolist()), model=r[11])) for r in rows]
 
-    def latest_hyper(self, path_id: str) -> dict | None:
+    def latest_hyper(self, path_id: str, model: str | None = None) -> dict | None:
+        """The newest fit of a route for one nominal model (None: of any model)."""
+        sql, args = "SELECT body, model FROM hypers WHERE path_id=?", (path_id,)
+        if model is not None:
+            sql, args = sql + " AND model=?", args + (model,)
         with self._rlock:
-            row = self._rdb.execute("SELECT body FROM hypers WHERE path_id=? ORDER BY version DESC LIMIT 1",
-                                   (path_id,)).fetchone()
-        return json.loads(row[0]) if row else None
+            row = self._rdb.execute(sql + " ORDER BY version DESC LIMIT 1", args).fetchone()
+        return dict(json.loads(row[0]), model=row[1]) if row else None
 
     def stats(self) -> list[dict]:
         with self._rlock:

@@ -3,10 +3,10 @@
 - ingests `lbc/*/experience` batches (any robot) for the routes it serves, in group commits, and
   acknowledges each stored seq on `lbc/<robot>/experience/ack` only after the commit;
 - answers local-window queries `lbc/store/<path>/window?vertex=i&speed=v[&model=m]` (one nominal
-  model's experiences, db.py; without `model`, those of the route's newest experience; and `hyper`,
-  `dump`, `stats`);
-- fits GP hyperparameters in a worker process after a repeat trial ends (or on a `fit` query) and
-  publishes the new version on `lbc/store/<path>/hyper`.
+  model's experiences, db.py; without `model`, those of the route's newest experience), the newest
+  hyperparameters `hyper[?model=m]` (fitted on that model's experiences), `dump` and `stats`;
+- fits GP hyperparameters on the route's newest model in a worker process after a repeat trial ends
+  (or on a `fit` query) and publishes the new version, naming its model, on `lbc/store/<path>/hyper`.
 
 Several stores can split the routes between them (`paths` in the config): each declares queryables
 only for its own routes, so Zenoh routes every query to the store that holds the data.
@@ -43,7 +43,8 @@ def hyper_msg(body: dict) -> HyperMsg:
                     n_used=int(body["n_used"]), n_total=int(body["n_total"]), fit_s=float(body["fit_s"]),
                     lml=[float(x) for x in body["lml"]],
                     dims=[HyperDim(lengthscales=[float(v) for v in d["lengthscales"]], signal_std=float(d["signal_std"]),
-                                   noise_std=float(d["noise_std"])) for d in body["dims"]])
+                                   noise_std=float(d["noise_std"])) for d in body["dims"]],
+                    model=str(body.get("model", "")))
 
 
 @dataclass
@@ -194,9 +195,14 @@ class StoreService(Service):
     def _on_hyper(self, query: zenoh.Query) -> None:
         def answer():
             path_id = check_name("path_id", self._path_of(query))
-            body = self.db.latest_hyper(path_id)
+            model = query_params(query).get("model")  # the asking controller's model; none given: the route's
+            if model:                                 # newest experiences'
+                check_name("model", model)
+            else:
+                model = self.db.current_model(path_id)
+            body = self.db.latest_hyper(path_id, model)
             if body is None:
-                query.reply_err(f"no hyperparameters for {path_id} yet".encode())
+                query.reply_err(f"no hyperparameters for {path_id} (model {model or 'untagged'}) yet".encode())
             else:
                 query.reply(keys.store_hyper(path_id), encode(hyper_msg(body)))
         self._answer(query, answer)
@@ -265,7 +271,8 @@ class StoreService(Service):
                 q.drop()
             state.waiting.clear()
             return
-        prev = self.db.latest_hyper(path_id)
+        # warm start from this model's last fit, else the route's (the terrain is the same)
+        prev = self.db.latest_hyper(path_id, model) or self.db.latest_hyper(path_id)
         f = self.cfg.fit
         if self._pool is None:
             # spawn, not fork: the parent has Zenoh threads
@@ -277,15 +284,16 @@ class StoreService(Service):
         state.running = self._pool.submit(fit_route, path_id, A, G, tiles if f.local_windows else None,
                                           f.restarts, f.max_points, f.seed, prev["dims"] if prev else None,
                                           list(f.min_lengthscales))
-        state.running.add_done_callback(lambda fut: self.inbox.put(("fit_done", (path_id, fut))))
+        state.running.add_done_callback(lambda fut: self.inbox.put(("fit_done", (path_id, model, fut))))
 
-    def _fit_done(self, path_id: str, fut: cf.Future) -> None:
+    def _fit_done(self, path_id: str, model: str, fut: cf.Future) -> None:
         state = self.fits[path_id]
         state.running = None
         waiting, state.waiting = state.waiting, []
         try:
             body = fut.result()
             body["stamp_s"] = time.time()
+            body["model"] = model
             body["version"] = self.db.save_hyper(path_id, body, body["stamp_s"])
             msg = hyper_msg(body)
             self.node.publish(keys.store_hyper(path_id), msg)
