@@ -69,6 +69,37 @@ def test_sigma_point_step_matches_monte_carlo():
     np.testing.assert_allclose(ours, mc, rtol=0.03, atol=2e-6)
 
 
+def _textbook_sigma_point_step(x, Sigma, mu, var_g, v, w, dt, gamma):
+    """Eq. 6.10-6.14 as written: all 13 sigma points of the stacked (x, m) through the unicycle step."""
+    n = 6
+    P = np.zeros((n, n))
+    P[:3, :3], P[3:, 3:] = Sigma, np.diag(var_g)
+    S = np.linalg.cholesky(P + 1e-12 * np.eye(n))
+    z0 = np.concatenate([x, mu])
+    Z = np.vstack([z0, z0 + np.sqrt(n + gamma) * S.T, z0 - np.sqrt(n + gamma) * S.T])
+    c, s = np.cos(Z[:, 2]), np.sin(Z[:, 2])
+    F = np.column_stack([Z[:, 0] + v * dt * c + c * Z[:, 3] - s * Z[:, 4],
+                         Z[:, 1] + v * dt * s + s * Z[:, 3] + c * Z[:, 4], Z[:, 2] + w * dt + Z[:, 5]])
+    wts = np.full(2 * n + 1, 0.5 / (n + gamma))
+    wts[0] = gamma / (n + gamma)
+    m = wts @ F
+    return (wts[:, None] * (F - m)).T @ (F - m)
+
+
+def test_sigma_point_step_equals_the_13_point_transform():
+    """The closed form (the six disturbance points in one term) against the transform as written."""
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        M = rng.normal(size=(3, 3)) * [0.03, 0.03, 0.1]
+        Sigma = M @ M.T + 1e-6 * np.eye(3)
+        x, mu = rng.normal(size=3) * [5, 5, 2], rng.normal(size=3) * 0.02
+        var_g = rng.uniform(0, 1e-3, 3)
+        v, w, gamma = rng.uniform(0, 2), rng.uniform(-1, 1), rng.choice([0.5, 2.0, 3.0])
+        np.testing.assert_allclose(sigma_point_step(x, Sigma, mu, var_g, v, w, DT, gamma),
+                                   _textbook_sigma_point_step(x, Sigma, mu, var_g, v, w, DT, gamma),
+                                   rtol=1e-6, atol=1e-12)
+
+
 def test_speed_sensitivities_match_finite_differences():
     rng = np.random.default_rng(2)
     path = arc_path()
@@ -261,6 +292,35 @@ def test_min_max_lowers_the_worst_case_cost_below_lb_nmpcs_solution():
 
     assert mm.info["sigma_lat_max_m"] > 0.01
     assert worst_cost(law.last_plan.w) < 0.95 * worst_cost(lb.u)
+
+
+def test_boundary_costs_and_gradients_match_each_sequence_costed_alone():
+    """minmax.boundary_costs (all eight sequences at once) against eq. 6.5-6.6 costed one sequence at a
+    time, and its gradients against finite differences."""
+    from services.controller.minmax import boundary_costs
+    path = arc_path()
+    ctx = ctx_for(path, path.pose_at(6.0) + np.array([0.0, 0.1, 0.05]))
+    st = NMPCSettings()
+    p, _ = build_problem(ctx, st, DT, None)
+    rng = np.random.default_rng(3)
+    bound = rng.uniform(0.01, 0.08, (p.K, 3))
+    w = p.w_ref + rng.normal(size=p.K) * 0.1
+
+    def each(u):
+        out = []
+        for signs in SIGNS:
+            p.cost_errors = lambda E, signs=signs: E + signs * bound
+            out.append(p.cost(u))
+        p.cost_errors = None
+        return np.array(out)
+
+    costs, G, H = boundary_costs(p, bound, w, True)
+    np.testing.assert_allclose(costs, each(w), rtol=1e-10)
+    np.testing.assert_allclose(boundary_costs(p, bound, w, False), costs, rtol=1e-12)
+    h = 1e-6
+    fd = np.column_stack([(each(w + h * e) - each(w - h * e)) / (2 * h) for e in np.eye(p.K)])
+    np.testing.assert_allclose(G, fd, rtol=1e-5, atol=1e-8)
+    assert H.shape == (p.K, p.K) and np.all(np.linalg.eigvalsh(H) > -1e-12)
 
 
 def test_constrained_law_with_a_wide_corridor_tracks_like_lb_nmpc():

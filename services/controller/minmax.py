@@ -89,26 +89,17 @@ def boundary_costs(problem, bound: np.ndarray, w: np.ndarray, with_grad: bool):
         problem.cost_errors, problem.extra_residuals = saved
     n_e = 3 * K
     r_in = r[n_e:5 * K]
-    costs = np.empty(len(SIGNS))
-    terms = np.empty(len(SIGNS))
-    base_in = float(r_in @ r_in)
-    for l, s in enumerate(SIGNS):
-        El = E + s * bound
-        terms[l] = problem.sqrt_qt * (El[-1, 1] + L * np.sin(El[-1, 2]))
-        costs[l] = 0.5 * (float(np.sum((El * problem.sqrt_q) ** 2)) + base_in + terms[l] ** 2)
+    El = E[None] + SIGNS[:, None, :] * bound[None]                   # (8, K, 3): all sequences at once
+    Rq = (El * problem.sqrt_q).reshape(len(SIGNS), n_e)
+    terms = problem.sqrt_qt * (El[:, -1, 1] + L * np.sin(El[:, -1, 2]))
+    costs = 0.5 * (np.einsum("li,li->l", Rq, Rq) + float(r_in @ r_in) + terms ** 2)
     if not with_grad:
         return costs
     Jq, J_in = J[:n_e], J[n_e:5 * K]
-    g_in = J_in.T @ r_in
-    G = np.empty((len(SIGNS), K))
+    jt = problem.sqrt_qt * (dE[-1, 1][None] + L * np.cos(El[:, -1, 2])[:, None] * dE[-1, 2][None])   # (8, K)
+    G = Rq @ Jq + (J_in.T @ r_in)[None] + jt * terms[:, None]
     worst = int(np.argmax(costs))
-    for l, s in enumerate(SIGNS):
-        rq_l = ((E + s * bound) * problem.sqrt_q).ravel()
-        El_head = E[-1, 2] + s[2] * bound[-1, 2]
-        jt = problem.sqrt_qt * (dE[-1, 1] + L * np.cos(El_head) * dE[-1, 2])
-        G[l] = Jq.T @ rq_l + g_in + jt * terms[l]
-        if l == worst:
-            H = Jq.T @ Jq + J_in.T @ J_in + np.outer(jt, jt)
+    H = Jq.T @ Jq + J_in.T @ J_in + np.outer(jt[worst], jt[worst])
     return costs, G, H
 
 

@@ -73,31 +73,64 @@ class DisturbanceVariance:
 def sigma_point_step(x: np.ndarray, Sigma: np.ndarray, mu: np.ndarray, var_g: np.ndarray, v: float, w: float,
                      dt: float, gamma: float) -> np.ndarray:
     """Eq. 6.10-6.14 for one period: the covariance of x_{j+1} given x_j ~ N(x, Sigma) and the
-    disturbance ~ N(mu, diag(var_g)). Returns Sigma_{j+1} (3x3)."""
+    disturbance ~ N(mu, diag(var_g)). Returns Sigma_{j+1} (3x3).
+
+    The 13 sigma points of z = (x, m) (n = 6, spread sqrt(n + gamma) along the columns of the block-
+    diagonal square root) in closed form: the step is linear in m at fixed heading, so the six points
+    that move only m lie symmetric about f(z_0) and together contribute exactly R diag(var_g) R' (their
+    weight 1/(2(n + gamma)) times 2(n + gamma)) plus their offset from the mean; only the six points
+    that move x go through cos/sin. Scalar arithmetic: numpy's per-call overhead was most of the cost
+    at this size, and the law calls this K times per step."""
     n2 = 6
     scale = math.sqrt(n2 + gamma)
-    S = np.zeros((6, 6))
-    S[:3, :3] = _chol3(Sigma)
-    S[3:, 3:] = np.diag(np.sqrt(np.maximum(var_g, 0.0)))
-    Z = np.empty((2 * n2 + 1, 6))
-    Z[0, :3], Z[0, 3:] = x, mu
-    Z[1:n2 + 1] = Z[0] + scale * S.T
-    Z[n2 + 1:] = Z[0] - scale * S.T
-    th = Z[:, 2]
-    c, s = np.cos(th), np.sin(th)
-    Xn = np.column_stack([Z[:, 0] + v * dt * c + c * Z[:, 3] - s * Z[:, 4],
-                          Z[:, 1] + v * dt * s + s * Z[:, 3] + c * Z[:, 4],
-                          th + w * dt + Z[:, 5]])
     w0 = gamma / (n2 + gamma)
     wi = 0.5 / (n2 + gamma)
-    mean = w0 * Xn[0] + wi * Xn[1:].sum(axis=0)
-    d = Xn - mean
-    return w0 * np.outer(d[0], d[0]) + wi * d[1:].T @ d[1:]
+    L = _chol3_rows(Sigma)
+    x0, y0, t0 = float(x[0]), float(x[1]), float(x[2])
+    m1, m2, m3 = float(mu[0]), float(mu[1]), float(mu[2])
+    fwd = v * dt + m1            # along-track motion at the mean disturbance
+    turn = w * dt + m3
+
+    def f(px, py, pt):
+        c, s = math.cos(pt), math.sin(pt)
+        return px + fwd * c - m2 * s, py + fwd * s + m2 * c, pt + turn
+
+    F0 = f(x0, y0, t0)
+    pts = []
+    for i in range(3):
+        dx, dy, dth = scale * L[0][i], scale * L[1][i], scale * L[2][i]
+        pts.append(f(x0 + dx, y0 + dy, t0 + dth))
+        pts.append(f(x0 - dx, y0 - dy, t0 - dth))
+    # mean: the six m-points average to F0
+    mx = (w0 + 6 * wi) * F0[0] + wi * sum(p[0] for p in pts)
+    my = (w0 + 6 * wi) * F0[1] + wi * sum(p[1] for p in pts)
+    mt = (w0 + 6 * wi) * F0[2] + wi * sum(p[2] for p in pts)
+    e = (F0[0] - mx, F0[1] - my, F0[2] - mt)
+    ce = w0 + 6 * wi
+    cxx, cxy, cxt = ce * e[0] * e[0], ce * e[0] * e[1], ce * e[0] * e[2]
+    cyy, cyt, ctt = ce * e[1] * e[1], ce * e[1] * e[2], ce * e[2] * e[2]
+    for p in pts:
+        a, b, t = p[0] - mx, p[1] - my, p[2] - mt
+        cxx += wi * a * a
+        cxy += wi * a * b
+        cxt += wi * a * t
+        cyy += wi * b * b
+        cyt += wi * b * t
+        ctt += wi * t * t
+    # + R(t0) diag(var_g) R(t0)' from the m-points
+    c, s = math.cos(t0), math.sin(t0)
+    v1, v2, v3 = (max(float(q), 0.0) for q in var_g)
+    cxx += c * c * v1 + s * s * v2
+    cxy += c * s * (v1 - v2)
+    cyy += s * s * v1 + c * c * v2
+    ctt += v3
+    return np.array([[cxx, cxy, cxt], [cxy, cyy, cyt], [cxt, cyt, ctt]])
 
 
-def _chol3(Sigma: np.ndarray) -> np.ndarray:
-    """Cholesky of a 3x3 covariance, written out (np.linalg's call overhead is most of its cost at this
-    size); one that is singular (a perfectly known heading, say) goes through its eigendecomposition."""
+def _chol3_rows(Sigma: np.ndarray) -> list[list[float]]:
+    """Lower Cholesky factor of a 3x3 covariance as nested lists, written out (np.linalg's call overhead
+    is most of its cost at this size); one that is singular (a perfectly known heading, say) goes
+    through its eigendecomposition (a square root, not triangular: any one serves the sigma points)."""
     a = Sigma.tolist()
     l11 = a[0][0] + 1e-12
     if l11 > 0:
@@ -109,9 +142,9 @@ def _chol3(Sigma: np.ndarray) -> np.ndarray:
             l32 = (a[2][1] - l31 * l21) / l22
             d3 = a[2][2] + 1e-12 - l31 * l31 - l32 * l32
             if d3 > 0:
-                return np.array([[l11, 0.0, 0.0], [l21, l22, 0.0], [l31, l32, math.sqrt(d3)]])
+                return [[l11, 0.0, 0.0], [l21, l22, 0.0], [l31, l32, math.sqrt(d3)]]
     vals, vecs = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
-    return vecs * np.sqrt(np.maximum(vals, 0.0))
+    return (vecs * np.sqrt(np.maximum(vals, 0.0))).tolist()
 
 
 def propagate(X: np.ndarray, A: np.ndarray, G: np.ndarray, var_g: np.ndarray, v: np.ndarray, w: np.ndarray,
