@@ -172,21 +172,26 @@ class HorizonProblem:
 
         Per step, x_{j+1} = F(x_j, x_{j-1}, u_j, u_{j-1}) (x_{j-1} and u_{j-1} enter through v_{j-1} and
         u_{j-1} in a_j), so S_{j+1} = A_j S_j + C_j S_{j-1} + b_j e_j' + d_j e_{j-1}' with the 3x3 A_j, C_j
-        and the 3-vectors b_j, d_j below: a handful of small matrix products per step."""
+        and the 3-vectors b_j, d_j of `_step_jacobians`. The mean is rolled out point by point (the GP's
+        input depends on the state); the per-step matrices are then built for all j at once, leaving two
+        small products per step for the recursion."""
         K, dt = self.K, self.dt
         X = np.empty((K + 1, 3))
         X[0] = self.x0
-        # dX/dw and dX/dv side by side in one array (columns: w's, then v's): one product per step for both
-        n_w = K if with_jac else 0
-        SS = np.zeros((K + 1, 3, n_w + (K if with_v_jac else 0))) if (with_jac or with_v_jac) else None
         model = self.model
+        jac = with_jac or with_v_jac
         a = np.zeros(9)
         xj, yj, thj = (float(v) for v in self.x0)
         xp = yp = thp = cp = sp = 0.0
         D, sD, cD, sinD = self.D, self.sD, self.cD, self.sinD
         v_all = self.v if v is None else v
         vb_all, wb_all = self.effective(v_all, np.asarray(w, dtype=float))
-        lag = self.lag
+        # what the sensitivities need of each step: heading cos/sin, disturbance, previous-step geometry
+        if jac:
+            cs = np.empty((K, 2))
+            gg = np.zeros((K, 2))
+            prev = np.zeros((K, 4))                        # cos, sin of theta_{j-1}; x_j - x_{j-1}, y_j - y_{j-1}
+            Dg_all = np.empty((K, 3, 9)) if model is not None else None
         for j in range(K):
             cd, sd = cD[j], sinD[j]
             dx, dy = xj - D[j, 0], yj - D[j, 1]
@@ -206,62 +211,100 @@ class HorizonProblem:
                     a[4] = (thj - thp) / dt
                     a[7], a[8] = v_all[j - 1], w[j - 1]
                 a[5], a[6] = v, wj
-                g, Dg = model.mean_and_grad(a)
+                if jac:
+                    g, Dg_all[j] = model.mean_and_grad(a)
+                else:
+                    g, _ = model.mean_and_grad(a)
                 gx, gy, gth = float(g[0]), float(g[1]), float(g[2])
             else:
                 gx = gy = gth = 0.0
-            if model is None:   # the inputs still matter to a prior that depends on the commands
-                a[5], a[6] = v, wj
+                a[5], a[6] = v, wj   # the inputs still matter to a prior that depends on the commands
             a_out[j] = a
+            if jac:
+                cs[j] = (c, s)
+                gg[j] = (gx, gy)
+                if j > 0:
+                    prev[j] = (cp, sp, xj - xp, yj - yp)
             vb, wb = float(vb_all[j]), float(wb_all[j])   # what the robot moves at (= u without a lag)
             xn = xj + vb * dt * c + c * gx - s * gy
             yn = yj + vb * dt * s + s * gx + c * gy
             thn = thj + wb * dt + gth
             X[j + 1] = (xn, yn, thn)
-            if with_jac or with_v_jac:
-                # the nominal step and the rotation of g by theta_j
-                Aj = np.array([[1.0, 0.0, -vb * dt * s - s * gx - c * gy],
-                               [0.0, 1.0, vb * dt * c + c * gx - s * gy],
-                               [0.0, 0.0, 1.0]])
-                # the nominal input effect; with a lag it reaches back to every earlier command (added below)
-                b = np.array([0.0, 0.0, 0.0 if lag else dt])
-                bv = np.zeros(3) if lag else np.array([dt * c, dt * s, 0.0])
-                Cp = None
-                if model is not None:
-                    Rf = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-                    Ax = np.array([[cd, sd, 0.0], [-sd, cd, 0.0], [0.0, 0.0, 1.0],
-                                   [cp / dt, sp / dt, 0.0], [0.0, 0.0, 1.0 / dt]]) if j > 0 else \
-                        np.array([[cd, sd, 0.0], [-sd, cd, 0.0], [0.0, 0.0, 1.0]])
-                    RDg = Rf @ Dg                                                   # (3, 9)
-                    Aj += RDg[:, :Ax.shape[0]] @ Ax
-                    b += RDg[:, 6]
-                    bv += RDg[:, 5]
-                    if j > 0:
-                        Ap = np.array([[-cp / dt, -sp / dt, (-sp * (xj - xp) + cp * (yj - yp)) / dt],
-                                       [0.0, 0.0, -1.0 / dt]])
-                        Cp = RDg[:, 3:5] @ Ap
-                Sn = Aj @ SS[j]
-                if Cp is not None:
-                    Sn += Cp @ SS[j - 1]
-                if with_jac:
-                    Sn[:, j] += b
-                    if lag:
-                        Sn[2, :j + 1] += dt * lag[2][j, :j + 1]
-                    if Cp is not None:
-                        Sn[:, j - 1] += RDg[:, 8]
-                if with_v_jac:
-                    Sn[:, n_w + j] += bv
-                    if lag:
-                        Sn[:2, n_w:n_w + j + 1] += np.outer([dt * c, dt * s], lag[0][j, :j + 1])
-                    if Cp is not None:
-                        Sn[:, n_w + j - 1] += RDg[:, 7]
-                SS[j + 1] = Sn
             xp, yp, thp, cp, sp = xj, yj, thj, c, s
             xj, yj, thj = xn, yn, thn
+        if not jac:
+            return X, None
+        Aj, Cj, b, bv, d_w, d_v = self._step_jacobians(cs, gg, prev, Dg_all, np.asarray(vb_all, dtype=float))
+        lag = self.lag
+        n_w = K if with_jac else 0
+        # dX/dw and dX/dv side by side in one array (columns: w's, then v's): one product per step for both
+        SS = np.zeros((K + 1, 3, n_w + (K if with_v_jac else 0)))
+        for j in range(K):
+            Sn = Aj[j] @ SS[j]
+            if Cj is not None and j > 0:
+                Sn += Cj[j] @ SS[j - 1]
+            if with_jac:
+                Sn[:, j] += b[j]
+                if lag:
+                    Sn[2, :j + 1] += dt * lag[2][j, :j + 1]
+                if d_w is not None and j > 0:
+                    Sn[:, j - 1] += d_w[j]
+            if with_v_jac:
+                Sn[:, n_w + j] += bv[j]
+                if lag:
+                    Sn[:2, n_w:n_w + j + 1] += np.outer(dt * cs[j], lag[0][j, :j + 1])
+                if d_v is not None and j > 0:
+                    Sn[:, n_w + j - 1] += d_v[j]
+            SS[j + 1] = Sn
         S = SS[:, :, :K] if with_jac else None
         if not with_v_jac:
             return X, S
         return X, S, SS[:, :, n_w:]
+
+    def _step_jacobians(self, cs: np.ndarray, gg: np.ndarray, prev: np.ndarray, Dg: np.ndarray | None,
+                        vb: np.ndarray):
+        """For every step j at once: A_j = dx_{j+1}/dx_j, C_j = dx_{j+1}/dx_{j-1} (None without a model),
+        b_j, bv_j = dx_{j+1}/d(w_j, v_j) (the nominal part is left to the caller's lag terms when there is
+        a lag), d_w, d_v = dx_{j+1}/d(w_{j-1}, v_{j-1}) through the GP's inputs (None without a model)."""
+        K, dt = self.K, self.dt
+        c, s = cs[:, 0], cs[:, 1]
+        gx, gy = gg[:, 0], gg[:, 1]
+        A = np.zeros((K, 3, 3))
+        A[:, 0, 0] = A[:, 1, 1] = A[:, 2, 2] = 1.0
+        # the nominal step and the rotation of g by theta_j
+        A[:, 0, 2] = -vb * dt * s - s * gx - c * gy
+        A[:, 1, 2] = vb * dt * c + c * gx - s * gy
+        b = np.zeros((K, 3))
+        bv = np.zeros((K, 3))
+        if not self.lag:                       # with a lag the inputs reach back to earlier commands (caller)
+            b[:, 2] = dt
+            bv[:, 0], bv[:, 1] = dt * c, dt * s
+        if Dg is None:
+            return A, None, b, bv, None, None
+        # R(theta_j) Dg_j: the GP's gradient in the world frame, (K, 3, 9)
+        RDg = np.empty_like(Dg)
+        RDg[:, 0] = c[:, None] * Dg[:, 0] - s[:, None] * Dg[:, 1]
+        RDg[:, 1] = s[:, None] * Dg[:, 0] + c[:, None] * Dg[:, 1]
+        RDg[:, 2] = Dg[:, 2]
+        # d a_j / d x_j: route coordinates (rows 0-2) and, from j = 1, the measured previous velocity (3-4)
+        cd, sd = self.cD[:K], self.sinD[:K]
+        cp, sp, ddx, ddy = prev[:, 0], prev[:, 1], prev[:, 2], prev[:, 3]
+        Ax = np.zeros((K, 5, 3))
+        Ax[:, 0, 0], Ax[:, 0, 1] = cd, sd
+        Ax[:, 1, 0], Ax[:, 1, 1] = -sd, cd
+        Ax[:, 2, 2] = 1.0
+        Ax[1:, 3, 0], Ax[1:, 3, 1] = cp[1:] / dt, sp[1:] / dt
+        Ax[1:, 4, 2] = 1.0 / dt
+        A += RDg[:, :, :5] @ Ax
+        b += RDg[:, :, 6]
+        bv += RDg[:, :, 5]
+        # d a_j / d x_{j-1} (the previous velocity), from j = 1
+        Ap = np.zeros((K, 2, 3))
+        Ap[1:, 0, 0], Ap[1:, 0, 1] = -cp[1:] / dt, -sp[1:] / dt
+        Ap[1:, 0, 2] = (-sp[1:] * ddx[1:] + cp[1:] * ddy[1:]) / dt
+        Ap[1:, 1, 2] = -1.0 / dt
+        C = RDg[:, :, 3:5] @ Ap
+        return A, C, b, bv, RDg[:, :, 8], RDg[:, :, 7]
 
     def errors(self, X: np.ndarray) -> np.ndarray:
         """(K, 3) errors of x_1..x_K in the frames of their desired poses (along, lateral, heading)."""
