@@ -329,18 +329,17 @@ class GaussianProcess:
             return np.zeros(self.d), np.zeros((self.d, self.p))
         if self._stack is None:
             dims = self._dims
-            self._stack = (np.stack([c.B for c in dims]), np.stack([c.B2 for c in dims]),
+            # log k_n = log sf2 - |b_n|^2 / 2 + b_n . a - |a|^2 / 2: the query-free terms folded in once
+            self._stack = (np.stack([c.B for c in dims]),
+                           np.stack([np.log(c.sf2) - 0.5 * c.B2 for c in dims]),
                            np.stack([c.inv_ell for c in dims]), np.stack([c.inv_ell2 for c in dims]),
-                           np.array([c.sf2 for c in dims]), np.stack([c.alpha_aug for c in dims]))
-        B, B2, inv_ell, inv_ell2, sf2, alpha_aug = self._stack
+                           np.stack([c.alpha_aug for c in dims]))
+        B, logc, inv_ell, inv_ell2, alpha_aug = self._stack
         A = q * inv_ell                                                     # (d, p)
         k = np.matmul(B, A[:, :, None])[:, :, 0]
-        k *= -2.0
-        k += B2
-        k += np.sum(A * A, axis=1)[:, None]
-        k *= -0.5
-        np.exp(k, out=k)
-        k *= sf2[:, None]                                                  # (d, N)
+        k += logc
+        k -= 0.5 * np.einsum("ij,ij->i", A, A)[:, None]
+        np.exp(k, out=k)                                                    # (d, N)
         r = np.matmul(k[:, None, :], alpha_aug)[:, 0, :]                    # [k alpha, k (alpha x)]
         mean = r[:, 0]
         return mean, (r[:, 1:] - q * r[:, :1]) * inv_ell2

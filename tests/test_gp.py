@@ -128,6 +128,11 @@ def test_query_gradients_match_central_differences(seed):
         mm, vm = gp.predict(Xq - e)
         np.testing.assert_allclose(dmean[:, :, k], (mp - mm) / (2 * e[k]), rtol=1e-5, atol=1e-7)
         np.testing.assert_allclose(dvar[:, :, k], (vp - vm) / (2 * e[k]), rtol=1e-5, atol=1e-7)
+    # the one-point path the NMPC rollout uses: the same mean and gradient
+    for i, x in enumerate(Xq):
+        g, Dg = gp.mean_and_grad(x)
+        np.testing.assert_allclose(g, mean[i], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(Dg, dmean[i], rtol=1e-9, atol=1e-12)
 
 
 # --- fitting ---------------------------------------------------------------------------------------
