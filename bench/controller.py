@@ -195,6 +195,7 @@ def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.nda
     res = []
     for j in range(1, K + 1):
         e = _route_errors(X, D, problem.cD, problem.sinD, j)
+        e[2] = e[2] - problem.head_offset[j - 1]          # the cost's heading reference (learned crab)
         res += [problem.sqrt_q[i] * e[i] for i in range(3)]
         if j == K:
             term = e[1] + s.lookahead_m * ca.sin(e[2])
@@ -239,6 +240,8 @@ def casadi_solve_minmax(lp: dict, settings: NMPCSettings):
     D = [[float(x) for x in row] for row in p.D]
     X = _casadi_rollout(p, _casadi_gp_mean(lp["model"]), w, p.v, D, p.sD, p.cD, p.sinD)
     E = [_route_errors(X, D, p.cD, p.sinD, j) for j in range(1, K + 1)]
+    for j in range(K):
+        E[j][2] = E[j][2] - p.head_offset[j]              # the cost's heading reference (learned crab)
     common = sum(s.r_w * (w[j] - p.w_ref[j]) ** 2 for j in range(K))
     prev = p.u_prev[1]
     for j in range(K):
@@ -296,12 +299,13 @@ def casadi_solve_constrained(lp: dict, model, settings: NMPCSettings):
         sinD.append(ty / n)
     X = _casadi_rollout(p, _casadi_gp_mean(model), w, v, D, s_d, cD, sinD)
     E = [_route_errors(X, D, cD, sinD, j) for j in range(1, K + 1)]
-    res = [p.sqrt_q[i] * E[j][i] for j in range(K) for i in range(3)]
+    Ec = [[e[0], e[1], e[2] - p.head_offset[j]] for j, e in enumerate(E)]   # the cost's heading reference
+    res = [p.sqrt_q[i] * Ec[j][i] for j in range(K) for i in range(3)]
     res += [math.sqrt(s.r_w) * (w[j] - v[j] * fk(s_d[j])) for j in range(K)]
     res += [math.sqrt(s.r_v) * (v[j] - p.v[j]) for j in range(K)]
     res += [math.sqrt(s.r_dw) * (w[j] - (p.u_prev[1] if j == 0 else w[j - 1])) for j in range(K)]
     res += [math.sqrt(s.r_dv) * (v[j] - (p.u_prev[0] if j == 0 else v[j - 1])) for j in range(K)]
-    res.append(p.sqrt_qt * (E[-1][1] + s.lookahead_m * ca.sin(E[-1][2])))
+    res.append(p.sqrt_qt * (Ec[-1][1] + s.lookahead_m * ca.sin(Ec[-1][2])))
     r = ca.vertcat(*res)
     alpha, cap = lp["alpha"], lp["cap"]
     sig_lat = ca.fmax(ca.DM(lp["sig"][:, 1]) + ca.mtimes(ca.DM(lp["dsig"]), v - ca.DM(lp["v0"])), 0)

@@ -344,6 +344,19 @@ class GaussianProcess:
         mean = r[:, 0]
         return mean, (r[:, 1:] - q * r[:, :1]) * inv_ell2
 
+    def mean(self, Xq) -> np.ndarray:
+        """Posterior mean (M, d) only (no variance: no triangular solves)."""
+        Q = self._prep(Xq)
+        out = np.zeros((len(Q), self.d))
+        if self.n == 0:
+            return out
+        for j, c in enumerate(self._dims):
+            Kq = _sqdist(Q * c.inv_ell, c.B, None, c.B2)
+            Kq *= -0.5
+            np.exp(Kq, out=Kq)
+            out[:, j] = c.sf2 * (Kq @ c.alpha)
+        return out
+
     def _prep(self, Xq) -> np.ndarray:
         Xq = np.asarray(Xq, dtype=float)
         if Xq.ndim == 1:

@@ -153,6 +153,7 @@ class NMPCSection:
     min_band_fraction: float = 0.2
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
     actuator_tau_s: tuple[float, float] = (0.0, 0.0)   # the drive's lag (v, w), s; 0 = eq. 5.26 as is
+    crab_reference: bool = False    # with a learned model, the heading cost's reference is the learned crab
 
 
 @dataclass(frozen=True, kw_only=True)

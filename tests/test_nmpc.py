@@ -239,3 +239,72 @@ def test_nmpc_drives_an_ackermann_robot_within_its_steering_limit():
     v, w = np.array(commands).T
     assert np.all(np.abs(w) <= v * mats.max_curvature + 1e-9)
     assert np.max(np.abs(w) / np.maximum(v, 1e-3)) > 0.5 * mats.max_curvature   # it did steer hard somewhere
+
+
+# --- the learned crab as the heading reference (NMPCSettings.crab_reference) --------------------------
+TEACH_CRAB = -0.16          # rad: the heading the route was taught with, against its direction (+x)
+SLIDE = 0.006               # m per period, to the robot's left: what the learned model has seen
+
+
+def slide_model():
+    """A GP that has seen a constant sideways slide everywhere near the route (body frame, as g is)."""
+    rng = np.random.default_rng(4)
+    lo = np.array([0.0, -0.3, -0.4, 0.3, -0.5, 0.3, -0.5, 0.3, -0.5])
+    hi = np.array([30.0, 0.3, 0.4, 1.5, 0.5, 1.5, 0.5, 1.5, 0.5])
+    X = lo + (hi - lo) * rng.uniform(size=(300, 9))
+    Y = np.tile([0.0, SLIDE, 0.0], (300, 1)) + 1e-5 * rng.normal(size=(300, 3))
+    h = SEHyper(np.array([20.0, 2.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0]), 0.01, 1e-4)
+    return GaussianProcess(X, Y, [h] * 3)
+
+
+def test_crab_offsets_are_the_crab_that_cancels_the_learned_slide_against_the_taught_heading():
+    from services.controller.nmpc import crab_offsets
+    gp = slide_model()
+    K = 10
+    s_d = 5.0 + 0.1 * np.arange(K + 1)
+    taught = np.column_stack([s_d, np.zeros(K + 1), np.full(K + 1, TEACH_CRAB)])
+    v, w_ref = np.full(K, 1.0), np.zeros(K)
+    off = crab_offsets(gp, s_d, taught, np.zeros(K + 1), v, w_ref, 0.1)
+    # by hand: moving along +x at 1 m/s against a slide of SLIDE per 0.1 s takes heading -atan(SLIDE / 0.1)
+    np.testing.assert_allclose(off, -math.atan2(SLIDE, 0.1) - TEACH_CRAB, atol=2e-3)
+    slow = crab_offsets(gp, s_d, taught, np.zeros(K + 1), np.full(K, 0.1), w_ref, 0.1)
+    assert np.all(slow == 0.0)                       # stopping: no course to hold
+
+
+def test_with_the_crab_reference_the_plan_holds_the_route_where_the_taught_heading_pulls_it_off():
+    """Repeating at 1 m/s a route taught with a bigger crab (a slower teach on a side slope): weighed
+    against the taught heading the plan turns to it and leaves the route; against the learned crab it
+    holds the route."""
+    from services.controller.nmpc import LBNMPCLaw
+    gp = slide_model()
+    xs = np.arange(0.0, 30.0, 0.25)
+    path = Path("slope", np.column_stack([xs, np.zeros_like(xs), np.full_like(xs, TEACH_CRAB)]))
+    crab = -math.atan2(SLIDE, 0.1)
+    pose = np.array([10.0, 0.0, crab])              # on the route, holding it (the slide cancelled)
+    lateral = {}
+    for on in (True, False):
+        law = LBNMPCLaw(NMPCSettings(crab_reference=on, max_iter=30, max_evals=40, tol=1e-6), 0.1, lambda c: gp)
+        ctx = ctx_at(path, pose, v=1.0, prev_cmd=(1.0, 0.0), model_prev=pose - [0.1, 0.0, 0.0])
+        law.angular(ctx)
+        lateral[on] = law.last_plan.poses[1:, 1]   # y is the lateral error here
+    assert np.max(np.abs(lateral[True])) < 0.005, lateral[True]
+    assert lateral[False][-1] < -0.02, lateral[False]   # turned towards the taught crab: off to the right
+
+
+def test_lb_nmpc_with_the_crab_reference_matches_ipopt_on_the_same_problem():
+    """The offsets enter the cost only; CasADi/IPOPT on the NLP as bench/controller.py writes it (with
+    the same offsets) finds the same optimum."""
+    import pytest
+    pytest.importorskip("casadi")
+    from bench.controller import casadi_solve
+    gp = slide_model()
+    xs = np.arange(0.0, 30.0, 0.25)
+    path = Path("slope", np.column_stack([xs, 0.02 * xs, np.full_like(xs, TEACH_CRAB)]))
+    st = NMPCSettings(crab_reference=True, max_iter=50, max_evals=60, tol=1e-8)
+    pose = np.array([10.0, 0.25, 0.05])
+    ctx = ctx_at(path, pose, v=1.0, prev_cmd=(1.0, 0.0), model_prev=pose - [0.1, 0.0, 0.0])
+    problem, w_limit = build_problem(ctx, st, 0.1, gp)
+    assert np.all(np.abs(problem.head_offset) > 0.05)
+    res = gauss_newton(problem.residual, problem.w_ref.copy(), -w_limit, w_limit, max_iter=50, tol=1e-8, max_evals=60)
+    _, ipopt = casadi_solve(problem, gp, problem.w_ref.copy(), w_limit)
+    assert ipopt * (1 - 1e-6) <= res.cost <= 1.001 * ipopt, (res.cost, ipopt)

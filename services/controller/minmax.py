@@ -81,7 +81,7 @@ def boundary_costs(problem, bound: np.ndarray, w: np.ndarray, with_grad: bool):
         if with_grad:
             r, J = problem.residual(w)
             dE = problem.last_dE
-        E = problem.errors(problem.rollout(w, with_jac=False)[0])     # (memoized rollout)
+        E = problem.cost_frame(problem.errors(problem.rollout(w, with_jac=False)[0]))   # (memoized rollout)
         if not with_grad:
             r = np.concatenate([(E * problem.sqrt_q).ravel(), problem.sqrt_r * (w - problem.w_ref),
                                 problem._extra(w, E)])

@@ -136,7 +136,8 @@ class RCLBNMPCLaw:
         """Desired poses where the planned speeds take the robot. Measured against poses placed at the
         scheduled speed, a plan that slows down would be judged against route points ahead of it: in a
         turn their direction differs from the robot's by the turn angle still to come, a phantom lateral
-        and heading error that the corridor limits then fight (the law slowed and sped up in turns)."""
+        and heading error that the corridor limits then fight (the law slowed and sped up in turns).
+        The cost's heading offsets (the learned crab, build_problem) stay per index: they vary slowly."""
         s_d = p.sD[0] + np.concatenate([[0.0], np.cumsum(p.effective(v)[0]) * p.dt])
         if np.array_equal(s_d, p.sD) and hasattr(p, "heading_slope"):
             return
@@ -193,12 +194,13 @@ class RCLBNMPCLaw:
         K = p.K
         self._follow_speeds(p, v)
         X, Sw, Sv = p.rollout(w, with_jac=True, v=v, with_v_jac=True, a_out=A)
-        E = p.errors(X)
+        E = p.errors(X)                 # the corridor's frame (taught heading)
+        Ec = p.cost_frame(E)            # the cost's (heading against the learned crab: build_problem)
         kappa = p.kappa
         u_prev_v, u_prev_w = p.u_prev
         sr, srv, sdr, sdv, sqt = math.sqrt(s.r_w), math.sqrt(s.r_v), math.sqrt(s.r_dw), math.sqrt(s.r_dv), p.sqrt_qt
-        term = E[-1, 1] + s.lookahead_m * math.sin(E[-1, 2])
-        r = np.concatenate([(E * p.sqrt_q).ravel(), sr * (w - v * kappa), srv * (v - p.v),
+        term = Ec[-1, 1] + s.lookahead_m * math.sin(Ec[-1, 2])
+        r = np.concatenate([(Ec * p.sqrt_q).ravel(), sr * (w - v * kappa), srv * (v - p.v),
                             sdr * np.diff(np.concatenate([[u_prev_w], w])),
                             sdv * np.diff(np.concatenate([[u_prev_v], v])), [sqt * term]])
         J = np.zeros((len(r), 2 * K))                    # columns: v_0..v_{K-1}, w_0..w_{K-1}
@@ -223,7 +225,7 @@ class RCLBNMPCLaw:
         J[4 * K:5 * K, :K] = srv * eye
         J[5 * K:6 * K, K:] = sdr * diff
         J[6 * K:7 * K, :K] = sdv * diff
-        J[7 * K] = sqt * (dE[-1, 1] + s.lookahead_m * math.cos(E[-1, 2]) * dE[-1, 2])
+        J[7 * K] = sqt * (dE[-1, 1] + s.lookahead_m * math.cos(Ec[-1, 2]) * dE[-1, 2])
         return X, E, dE, r, J
 
     def angular(self, ctx: StepContext) -> LawResult:
