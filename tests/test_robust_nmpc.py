@@ -524,3 +524,22 @@ def test_min_max_step_matches_ipopt_on_the_same_problem():
         law.angular(ctx_for(path, path.pose_at(s0) + np.array(off)))
         _, ipopt_cost, ours = casadi_solve_minmax(law.last_problem, st)
         assert ipopt_cost is not None and ipopt_cost * (1 - 1e-6) <= ours <= 1.005 * ipopt_cost, (ours, ipopt_cost)
+
+
+def test_rc_lb_nmpc_takes_the_learned_crab_at_the_speeds_it_slows_down_to():
+    """The crab that cancels a sideways slide grows as the robot slows: with the crab reference on, the
+    constrained law measures its heading cost against the crab of the speeds its ladder chose."""
+    from tests.test_nmpc import SLIDE, TEACH_CRAB, slide_model
+    gp = slide_model()
+    xs = np.arange(0.0, 30.0, 0.25)
+    path = Path("slope", np.column_stack([xs, np.zeros_like(xs), np.full_like(xs, TEACH_CRAB)]))
+    st = NMPCSettings(crab_reference=True, prior_std_base=(0.002, 0.006, 0.006))
+    law = RCLBNMPCLaw(st, DT, lambda c: gp)
+    pose = np.array([10.0, 0.0, -math.atan2(SLIDE, 0.1)])
+    res = law.angular(ctx_for(path, pose, v=1.0, corridor=Corridor(path.s, 0.05, math.radians(20))))
+    lp = law.last_problem
+    v0 = lp["v0"]
+    assert not res.stop_reason and res.info["speed_scale"] < 0.9 and v0[1] >= 0.3
+    # build_problem's offsets are the schedule's (1 m/s: 0.100 rad); at 0.7 m/s it takes 0.075 rad
+    expected = -np.arctan2(SLIDE, v0[1:] * DT) - TEACH_CRAB          # j = 1..K-1 leave at v0[1..K-1]
+    np.testing.assert_allclose(lp["problem"].head_offset[:-1], np.clip(expected, -0.2, 0.2), atol=3e-3)

@@ -35,7 +35,7 @@ import numpy as np
 
 from services.controller.laws import LawResult, StepContext
 from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
-from services.controller.nmpc import HorizonProblem, NMPCSettings, Plan, build_problem
+from services.controller.nmpc import HorizonProblem, NMPCSettings, Plan, build_problem, crab_offsets
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
                                              route_sigmas, sigma_point_step, variance_speed_derivatives)
@@ -137,7 +137,8 @@ class RCLBNMPCLaw:
         scheduled speed, a plan that slows down would be judged against route points ahead of it: in a
         turn their direction differs from the robot's by the turn angle still to come, a phantom lateral
         and heading error that the corridor limits then fight (the law slowed and sped up in turns).
-        The cost's heading offsets (the learned crab, build_problem) stay per index: they vary slowly."""
+        The cost's heading offsets (the learned crab) are set once per step, after the speed cap; within
+        the solve they stay per index (they vary slowly along the route)."""
         s_d = p.sD[0] + np.concatenate([[0.0], np.cumsum(p.effective(v)[0]) * p.dt])
         if np.array_equal(s_d, p.sD) and hasattr(p, "heading_slope"):
             return
@@ -303,6 +304,9 @@ class RCLBNMPCLaw:
             v_max = np.maximum(np.minimum(v_max, speed_scale * p.v), s.v_min_mps)
             v_start = v
         w_start = w
+        if gp is not None and s.crab_reference:
+            # the learned crab at the speeds this step starts from (build_problem's is the schedule's)
+            p.head_offset = crab_offsets(gp, p.sD, p.D, np.arctan2(p.sinD, p.cD), v, v * p.kappa, dt)
         cur = evaluate(v, w, A)
         if alpha > 0:
             dvar_dv, dvar_dvprev = variance_speed_derivatives(var, A)
