@@ -30,12 +30,15 @@ from bench.closed_loop import ClosedLoop
 from bench.report import run_and_print, single_core
 from common.messages import Experience, HyperDim, HyperMsg
 from common.scenario import TerrainPatch
-from services.controller.gauss_newton import gauss_newton
-from services.controller.local_model import LocalModels, hold_steps_for
 from services.controller.corridor import Corridor
-from services.controller.nmpc import HorizonProblem, LBNMPCLaw, NMPCSettings, build_problem
+from services.controller.gauss_newton import gauss_newton
+from services.controller.horizon import HorizonProblem
+from services.controller.laws import LawResult, StepContext
+from services.controller.local_model import LocalModels, hold_steps_for
 from services.controller.minmax import SIGNS
-from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
+from services.controller.nmpc import LBNMPCLaw, build_problem
+from services.controller.robust_nmpc import CorridorStep, MinMaxStep, MMLBNMPCLaw, RCLBNMPCLaw
+from services.controller.settings import NMPCSettings
 from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
 from services.gp_store.db import BinPolicy, ExperienceDB
 from services.gp_store.fitting import fit_route
@@ -93,41 +96,42 @@ class Timing:
     builds_in_step: int      # window GPs the steps still had to build themselves
 
 
+class TimedLaw:
+    """A law timed step by step as the node runs it: `angular` (the command's latency), then the next
+    window's GP built after the command (not part of the step's time)."""
+
+    def __init__(self, law, models: LocalModels, keep_every: int):
+        self.law, self.models, self.keep_every = law, models, keep_every
+        self.name, self.settings = law.name, law.settings
+        self.times, self.sizes, self.evals, self.statuses, self.prepare = [], [], [], [], []
+        self.kept: list = []     # (ctx, the law's last_step) for the IPOPT comparison
+
+    def angular(self, ctx: StepContext) -> LawResult:
+        t0 = time.perf_counter()
+        res = self.law.angular(ctx)
+        self.times.append((time.perf_counter() - t0) * 1e3)
+        self.sizes.append(self.models.last_n)
+        self.evals.append(res.solve.evaluations if res.solve is not None else 0)
+        self.statuses.append(res.solve.status if res.solve is not None else "")
+        if len(self.times) % self.keep_every == 0 and not res.stop_reason:
+            self.kept.append((ctx, self.law.last_step, self.times[-1]))
+        v = ctx.v_mps if res.v_mps is None else res.v_mps
+        t1 = time.perf_counter()
+        self.models.prepare(ctx.path, ctx.s_m + v * DT, v)
+        self.prepare.append((time.perf_counter() - t1) * 1e3)
+        return res
+
+
 def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, settings: NMPCSettings,
                     keep_every: int, algorithm: str = "lb-nmpc") -> Timing:
     # the windows drawn as the node draws them (C/RC hold the window's speed bin: node.py)
     models = LocalModels(lambda v, s: windows[(v, int(math.floor(s / POLICY.v_bin_mps)))], lambda: hyper,
                          settings.horizon * DT, POLICY.v_bin_mps, hold_steps=hold_steps_for(algorithm))
-    times, sizes, kept, evals, statuses, prepare = [], [], [], [], [], []
-    law = LAWS[algorithm](settings, DT, models.model_for)
-    inner = law.angular
-
-    def timed(ctx):
-        # the warm start this step will use (the law shifts its previous solution by one period)
-        prev = getattr(law, "_prev", None)
-        u0 = None if prev is None or algorithm != "lb-nmpc" else np.concatenate([prev[1:], prev[-1:]])
-        t0 = time.perf_counter()
-        res = inner(ctx)
-        times.append((time.perf_counter() - t0) * 1e3)
-        sizes.append(models.last_n)
-        evals.append(res.info.get("evaluations", res.info.get("iterations", res.iterations)))
-        statuses.append(res.info.get("status", ""))
-        if u0 is not None and len(times) % keep_every == 0:
-            kept.append((ctx, models.model_for(ctx), u0))
-        if algorithm != "lb-nmpc" and len(times) % keep_every == 0 and not res.stop_reason:
-            kept.append((law.last_problem, times[-1]))
-        # as the node does once the command is out: the next step's window GP (not part of the step's time)
-        v = ctx.v_mps if res.v_mps is None else res.v_mps
-        t1 = time.perf_counter()
-        models.prepare(ctx.path, ctx.s_m + v * DT, v)
-        prepare.append((time.perf_counter() - t1) * 1e3)
-        return res
-
-    law.angular = timed
+    timed = TimedLaw(LAWS[algorithm](settings, DT, models.model_for), models, keep_every)
     corridor = Corridor(cl.path.s, 0.3, math.radians(20.0)) if algorithm in ("c-lb-nmpc", "rc-lb-nmpc") else None
-    cl.repeat(trial + 1, SPEEDS[1], law=law, corridor=corridor)
-    return Timing(np.array(times), np.array(sizes), kept, np.array(evals), statuses, np.array(prepare),
-                  models.builds - models.prepared)
+    cl.repeat(trial + 1, SPEEDS[1], law=timed, corridor=corridor)
+    return Timing(np.array(timed.times), np.array(timed.sizes), timed.kept, np.array(timed.evals), timed.statuses,
+                  np.array(timed.prepare), models.builds - models.prepared)
 
 
 def _casadi_gp_mean(model):
@@ -149,15 +153,15 @@ def _casadi_gp_mean(model):
 
 
 def _casadi_rollout(problem: HorizonProblem, gp_mean, w, v, D, sD, cD, sinD):
-    """Predicted poses x_1..x_K as in HorizonProblem._rollout, with symbolic w, v and reference."""
+    """Predicted poses x_1..x_K as in HorizonProblem.rollout, with symbolic w, v and reference."""
     import casadi as ca
     K, dt = problem.K, problem.dt
     X = [ca.SX(problem.x0)]
     vb, wb = v, w
-    if problem.lag is not None:     # the drive's lag: the robot moves at L u + c xi0 (actuator.py)
-        Lv, cv, Lw, cw = problem.lag
-        vb = ca.mtimes(ca.DM(Lv), ca.vertcat(*[v[j] for j in range(K)])) + ca.DM(cv)
-        wb = ca.mtimes(ca.DM(Lw), ca.vertcat(*[w[j] for j in range(K)])) + ca.DM(cw)
+    lag = problem.lag
+    if lag is not None:     # the drive's lag: the robot moves at L u + c xi0 (actuator.py)
+        vb = ca.mtimes(ca.DM(lag.Lv), ca.vertcat(*[v[j] for j in range(K)])) + ca.DM(lag.cv)
+        wb = ca.mtimes(ca.DM(lag.Lw), ca.vertcat(*[w[j] for j in range(K)])) + ca.DM(lag.cw)
     for j in range(K):
         xj = X[j]
         c, sn = ca.cos(xj[2]), ca.sin(xj[2])
@@ -165,7 +169,7 @@ def _casadi_rollout(problem: HorizonProblem, gp_mean, w, v, D, sD, cD, sinD):
         if gp_mean is not None:
             dx, dy = xj[0] - D[j][0], xj[1] - D[j][1]
             if j == 0:
-                v_act, w_act = problem.v_prev_act
+                v_act, w_act = problem.start.v_prev_act
                 v_prev, w_prev = problem.u_prev
             else:
                 xp = X[j - 1]
@@ -190,12 +194,13 @@ def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.nda
     import casadi as ca
     K, s = problem.K, problem.s
     w = ca.SX.sym("w", K)
-    D = [[float(x) for x in row] for row in problem.D]
-    X = _casadi_rollout(problem, _casadi_gp_mean(model), w, problem.v, D, problem.sD, problem.cD, problem.sinD)
+    ref = problem.ref
+    D = [[float(x) for x in row] for row in ref.poses]
+    X = _casadi_rollout(problem, _casadi_gp_mean(model), w, problem.v, D, ref.s_m, ref.cos_dir, ref.sin_dir)
     res = []
     for j in range(1, K + 1):
-        e = _route_errors(X, D, problem.cD, problem.sinD, j)
-        e[2] = e[2] - problem.head_offset[j - 1]          # the cost's heading reference (learned crab)
+        e = _route_errors(X, D, ref.cos_dir, ref.sin_dir, j)
+        e[2] = e[2] - ref.head_offset[j - 1]          # the cost's heading reference (learned crab)
         res += [problem.sqrt_q[i] * e[i] for i in range(3)]
         if j == K:
             term = e[1] + s.lookahead_m * ca.sin(e[2])
@@ -217,31 +222,24 @@ def casadi_solve(problem: HorizonProblem, model, u0: np.ndarray, w_limit: np.nda
 
 def worst_case_cost(problem: HorizonProblem, bound: np.ndarray, w: np.ndarray) -> float:
     """Eq. 6.5-6.6 at w: the largest cost over the 2^3 boundary sequences E + s_l * bound."""
-    saved = problem.cost_errors
-    try:
-        costs = []
-        for signs in SIGNS:
-            problem.cost_errors = lambda E, signs=signs: E + signs * bound
-            costs.append(problem.cost(w))
-    finally:
-        problem.cost_errors = saved
-    return max(costs)
+    return max(problem.cost(w, error_offset=signs * bound) for signs in SIGNS)
 
 
-def casadi_solve_minmax(lp: dict, settings: NMPCSettings):
-    """One MM-LB-NMPC step (`MMLBNMPCLaw.last_problem`) in CasADi, solved by IPOPT in epigraph form:
+def casadi_solve_minmax(step: MinMaxStep, settings: NMPCSettings):
+    """One MM-LB-NMPC step (`MMLBNMPCLaw.last_step`) in CasADi, solved by IPOPT in epigraph form:
     min t subject to t >= the cost of each of the 2^3 boundary sequences (the same fixed 3-sigma bounds,
     the same GP mean, weights and limits). Returns (solve seconds, optimal worst-case cost, ours)."""
     import casadi as ca
-    p, bound = lp["problem"], lp["bound"]
+    p, bound = step.problem, step.bound
+    ref = p.ref
     K, s = p.K, settings
     w = ca.SX.sym("w", K)
     t = ca.SX.sym("t")
-    D = [[float(x) for x in row] for row in p.D]
-    X = _casadi_rollout(p, _casadi_gp_mean(lp["model"]), w, p.v, D, p.sD, p.cD, p.sinD)
-    E = [_route_errors(X, D, p.cD, p.sinD, j) for j in range(1, K + 1)]
+    D = [[float(x) for x in row] for row in ref.poses]
+    X = _casadi_rollout(p, _casadi_gp_mean(p.model), w, p.v, D, ref.s_m, ref.cos_dir, ref.sin_dir)
+    E = [_route_errors(X, D, ref.cos_dir, ref.sin_dir, j) for j in range(1, K + 1)]
     for j in range(K):
-        E[j][2] = E[j][2] - p.head_offset[j]              # the cost's heading reference (learned crab)
+        E[j][2] = E[j][2] - ref.head_offset[j]              # the cost's heading reference (learned crab)
     common = sum(s.r_w * (w[j] - p.w_ref[j]) ** 2 for j in range(K))
     prev = p.u_prev[1]
     for j in range(K):
@@ -256,10 +254,10 @@ def casadi_solve_minmax(lp: dict, settings: NMPCSettings):
     nlp = {"x": ca.vertcat(w, t), "f": t, "g": ca.vertcat(*g)}
     solver = ca.nlpsol("mm", "ipopt", nlp, {"ipopt.print_level": 0, "print_time": 0, "ipopt.tol": 1e-10,
                                             "ipopt.sb": "yes"})
-    ours = worst_case_cost(p, bound, lp["w"])
-    lim = lp["w_limit"]
+    ours = worst_case_cost(p, bound, step.w)
+    lim = step.w_limit
     t0 = time.perf_counter()
-    out = solver(x0=np.concatenate([lp["u0"], [ours]]), lbx=np.concatenate([-lim, [-np.inf]]),
+    out = solver(x0=np.concatenate([step.w0, [ours]]), lbx=np.concatenate([-lim, [-np.inf]]),
                  ubx=np.concatenate([lim, [np.inf]]), ubg=0.0)
     seconds = time.perf_counter() - t0
     if not solver.stats()["success"]:
@@ -267,27 +265,28 @@ def casadi_solve_minmax(lp: dict, settings: NMPCSettings):
     return seconds, float(out["f"]), ours
 
 
-def casadi_solve_constrained(lp: dict, model, settings: NMPCSettings):
-    """One step of C-/RC-LB-NMPC (`RCLBNMPCLaw.last_problem`) in CasADi, solved by IPOPT: both speeds
+def casadi_solve_constrained(step: CorridorStep, settings: NMPCSettings):
+    """One step of C-/RC-LB-NMPC (`RCLBNMPCLaw.last_step`) in CasADi, solved by IPOPT: both speeds
     free, the desired poses following the planned speeds along the route, the corridor tightened by
     alpha * sigma with the lateral sigma linear in the speeds as our SQP has it, violations through
     slacks at the same L1 price. Returns (solve seconds, optimal merit, our merit)."""
     import casadi as ca
-    p = lp["problem"]
+    nlp = step.nlp
+    p = nlp.problem
     path, K, dt, s = p.path, p.K, p.dt, settings
     v, w = ca.SX.sym("v", K), ca.SX.sym("w", K)
     sl = ca.SX.sym("slack", 3 * K)
     # the reference where the planned speeds take the robot (pose_at / tangent_at / curvature, interpolated)
     heads = np.unwrap(path.poses[:, 2])
-    offset = 2 * np.pi * np.round((p.D[0, 2] - np.interp(p.sD[0], path.s, heads)) / (2 * np.pi))
+    offset = 2 * np.pi * np.round((p.ref.poses[0, 2] - np.interp(p.ref.s_m[0], path.s, heads)) / (2 * np.pi))
     fx = ca.interpolant("rx", "linear", [path.s], path.poses[:, 0])
     fy = ca.interpolant("ry", "linear", [path.s], path.poses[:, 1])
     fth = ca.interpolant("rth", "linear", [path.s], heads + offset)
     fk = ca.interpolant("rk", "linear", [path.s], path.curvature)
-    s_d = [ca.SX(p.sD[0])]
+    s_d = [ca.SX(p.ref.s_m[0])]
     vb = v
     if p.lag is not None:           # progress at the speeds the robot reaches (the drive's lag)
-        vb = ca.mtimes(ca.DM(p.lag[0]), ca.vertcat(*[v[j] for j in range(K)])) + ca.DM(p.lag[1])
+        vb = ca.mtimes(ca.DM(p.lag.Lv), ca.vertcat(*[v[j] for j in range(K)])) + ca.DM(p.lag.cv)
     for j in range(K):
         s_d.append(s_d[-1] + vb[j] * dt)
     D, cD, sinD = [], [], []
@@ -297,9 +296,9 @@ def casadi_solve_constrained(lp: dict, model, settings: NMPCSettings):
         n = ca.sqrt(tx ** 2 + ty ** 2)
         cD.append(tx / n)
         sinD.append(ty / n)
-    X = _casadi_rollout(p, _casadi_gp_mean(model), w, v, D, s_d, cD, sinD)
+    X = _casadi_rollout(p, _casadi_gp_mean(p.model), w, v, D, s_d, cD, sinD)
     E = [_route_errors(X, D, cD, sinD, j) for j in range(1, K + 1)]
-    Ec = [[e[0], e[1], e[2] - p.head_offset[j]] for j, e in enumerate(E)]   # the cost's heading reference
+    Ec = [[e[0], e[1], e[2] - p.ref.head_offset[j]] for j, e in enumerate(E)]   # the cost's heading reference
     res = [p.sqrt_q[i] * Ec[j][i] for j in range(K) for i in range(3)]
     res += [math.sqrt(s.r_w) * (w[j] - v[j] * fk(s_d[j])) for j in range(K)]
     res += [math.sqrt(s.r_v) * (v[j] - p.v[j]) for j in range(K)]
@@ -307,30 +306,88 @@ def casadi_solve_constrained(lp: dict, model, settings: NMPCSettings):
     res += [math.sqrt(s.r_dv) * (v[j] - (p.u_prev[0] if j == 0 else v[j - 1])) for j in range(K)]
     res.append(p.sqrt_qt * (Ec[-1][1] + s.lookahead_m * ca.sin(Ec[-1][2])))
     r = ca.vertcat(*res)
-    alpha, cap = lp["alpha"], lp["cap"]
-    sig_lat = ca.fmax(ca.DM(lp["sig"][:, 1]) + ca.mtimes(ca.DM(lp["dsig"]), v - ca.DM(lp["v0"])), 0)
+    alpha, cap, sig = nlp.alpha, nlp.cap, nlp.sig_start
+    sig_lat = ca.fmax(ca.DM(sig[:, 1]) + ca.mtimes(ca.DM(nlp.dsig_v), v - ca.DM(nlp.v_start)), 0)
     g, lbg, ubg = [], [], []
     for j in range(K):
         t_lat = ca.fmin(alpha * sig_lat[j], cap[j, 1])
-        t_head = min(alpha * lp["sig"][j, 2], cap[j, 2])
+        t_head = min(alpha * sig[j, 2], cap[j, 2])
         g += [E[j][1] + t_lat - sl[j], E[j][1] - t_lat + sl[K + j], E[j][2] + t_head - sl[2 * K + j],
               E[j][2] - t_head + sl[2 * K + j]]
-        lbg += [-np.inf, lp["lo"][j], -np.inf, -lp["head"][j]]
-        ubg += [lp["hi"][j], np.inf, lp["head"][j], np.inf]
+        lbg += [-np.inf, nlp.lo_lat[j], -np.inf, -nlp.head_lim[j]]
+        ubg += [nlp.hi_lat[j], np.inf, nlp.head_lim[j], np.inf]
     merit = 0.5 * ca.dot(r, r) + s.slack_weight * ca.sum1(sl)
-    nlp = {"x": ca.vertcat(v, w, sl), "f": merit, "g": ca.vertcat(*g)}
-    solver = ca.nlpsol("rc", "ipopt", nlp, {"ipopt.print_level": 0, "print_time": 0, "ipopt.tol": 1e-8,
+    problem = {"x": ca.vertcat(v, w, sl), "f": merit, "g": ca.vertcat(*g)}
+    solver = ca.nlpsol("rc", "ipopt", problem, {"ipopt.print_level": 0, "print_time": 0, "ipopt.tol": 1e-8,
                                             "ipopt.bound_relax_factor": 0.0,
                                             "ipopt.sb": "yes"})
-    x0 = np.concatenate([lp["v0"], lp["w0"], np.zeros(3 * K)])
-    lbx = np.concatenate([np.full(K, s.v_min_mps), -lp["w_lim"], np.zeros(3 * K)])
-    ubx = np.concatenate([np.maximum(lp["v_max"], s.v_min_mps), lp["w_lim"], np.full(3 * K, np.inf)])
+    w_lim = nlp.w_limits(step.result.iterate.v)
+    x0 = np.concatenate([step.start.v, step.start.w, np.zeros(3 * K)])
+    lbx = np.concatenate([np.full(K, s.v_min_mps), -w_lim, np.zeros(3 * K)])
+    ubx = np.concatenate([np.maximum(nlp.v_max, s.v_min_mps), w_lim, np.full(3 * K, np.inf)])
     t0 = time.perf_counter()
     out = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
     seconds = time.perf_counter() - t0
     if not solver.stats()["success"]:
-        return seconds, None, lp["merit"]
-    return seconds, float(out["f"]), lp["merit"]
+        return seconds, None, step.result.iterate.merit
+    return seconds, float(out["f"]), step.result.iterate.merit
+
+
+def _timing_result(args, settings: NMPCSettings, timing: Timing) -> dict:
+    times, sizes, evals = timing.times, timing.sizes, timing.evals
+    return {"algorithm": args.algorithm, "horizon": args.horizon, "window": round(float(sizes.mean()), 1),
+            "window_max": int(sizes.max()), "solve_ms_p50": round(float(np.percentile(times, 50)), 3),
+            "solve_ms_p99": round(float(np.percentile(times, 99)), 3),
+            "solve_ms_mean": round(float(times.mean()), 3), "steps": len(times),
+            "evaluations_p50": float(np.percentile(evals, 50)), "evaluations_p99": float(np.percentile(evals, 99)),
+            "not_converged": sum(s != "converged" for s in timing.statuses), "max_evals": settings.max_evals,
+            "prepare_ms_p99": round(float(np.percentile(timing.prepare_ms, 99)), 3),
+            "window_builds_in_step": timing.builds_in_step, "casadi_solve_ms_p50": None, "cost_gap": None}
+
+
+def _compare_robust(algorithm: str, kept: list, settings: NMPCSettings) -> dict:
+    """Our whole step (covariance; for RC also the ladder) against IPOPT's solve of the step's NLP alone:
+    MM's min-max in epigraph form, C/RC's corridor-constrained problem with the same slack price."""
+    if algorithm == "mm-lb-nmpc":
+        what, solve = "min-max", lambda step: casadi_solve_minmax(step, settings)
+    else:
+        what, solve = "constrained", lambda step: casadi_solve_constrained(step, settings)
+    ratios, gaps, ipopt_ms, failed = [], [], [], 0
+    for _ctx, step, ours_ms in kept:
+        sec, ipopt_value, ours_value = solve(step)
+        if ipopt_value is None:
+            failed += 1
+            continue
+        ipopt_ms.append(sec * 1e3)
+        ratios.append(sec * 1e3 / ours_ms)
+        gaps.append((ours_value - ipopt_value) / max(abs(ipopt_value), 1e-12))
+    log.info("IPOPT on %d %s problems (%d failed): %.1f ms median (ours %.1fx faster); objective gap "
+             "median %.2e, max %.2e", len(ipopt_ms), what, failed, np.median(ipopt_ms), np.median(ratios),
+             np.median(gaps), np.max(gaps))
+    return {"casadi_solve_ms_p50": round(float(np.median(ipopt_ms)), 3), "cost_gap": float(np.mean(gaps)),
+            "cost_gap_median": float(np.median(gaps)), "cost_gap_max": float(np.max(gaps)),
+            "casadi_over_ours_time_ratio": round(float(np.median(ratios)), 2), "casadi_problems": len(ipopt_ms),
+            "casadi_failed": failed}
+
+
+def _compare_lb(kept: list, settings: NMPCSettings) -> dict:
+    """The kept LB-NMPC problems solved again from the same warm start, fully by ours and by IPOPT."""
+    ratios, gaps, ipopt_ms = [], [], []
+    for ctx, step, _ in kept:
+        problem, w_limit = build_problem(ctx, settings, DT, step.problem.model)   # fresh: no memoized rollouts
+        t1 = time.perf_counter()
+        ours = gauss_newton(problem.residual, step.w0, -w_limit, w_limit, max_iter=settings.max_iter,
+                            tol=settings.tol)
+        ours_ms = (time.perf_counter() - t1) * 1e3
+        sec, ipopt_cost = casadi_solve(problem, step.problem.model, step.w0, w_limit)
+        ipopt_ms.append(sec * 1e3)
+        ratios.append(sec * 1e3 / ours_ms)
+        gaps.append((ours.cost - ipopt_cost) / max(abs(ipopt_cost), 1e-12))
+    log.info("IPOPT on %d problems: %.1f ms median (ours %.1fx faster); cost gap median %.2e, max %.2e",
+             len(kept), np.median(ipopt_ms), np.median(ratios), np.median(gaps), np.max(gaps))
+    return {"casadi_solve_ms_p50": round(float(np.median(ipopt_ms)), 3), "cost_gap": float(np.mean(gaps)),
+            "cost_gap_max": float(np.max(gaps)), "casadi_over_ours_time_ratio": round(float(np.median(ratios)), 2),
+            "casadi_problems": len(kept)}
 
 
 def run_bench(args) -> dict:
@@ -342,72 +399,27 @@ def run_bench(args) -> dict:
         log.info("route %.1f m, %d experiences retained from %d FL trials, hyperparameters in %.1f s (%.1f s)",
                  path.length_m, n, trials, hyper.fit_s, time.perf_counter() - t0)
         timing = time_controller(cl, hyper, windows, trials, settings, args.keep_every, args.algorithm)
-        times, sizes, kept, evals, statuses = timing.times, timing.sizes, timing.kept, timing.evals, timing.statuses
-        log.info("%s: %d steps, window mean %.0f max %d", args.algorithm, len(times), sizes.mean(), sizes.max())
-        result = {"algorithm": args.algorithm, "horizon": args.horizon, "window": round(float(sizes.mean()), 1),
-                  "window_max": int(sizes.max()), "solve_ms_p50": round(float(np.percentile(times, 50)), 3),
-                  "solve_ms_p99": round(float(np.percentile(times, 99)), 3),
-                  "solve_ms_mean": round(float(times.mean()), 3), "steps": len(times), "pinned": pinned,
-                  "evaluations_p50": float(np.percentile(evals, 50)), "evaluations_p99": float(np.percentile(evals, 99)),
-                  "not_converged": sum(s != "converged" for s in statuses), "max_evals": settings.max_evals,
-                  "prepare_ms_p99": round(float(np.percentile(timing.prepare_ms, 99)), 3),
-                  "window_builds_in_step": timing.builds_in_step,
-                  "casadi_solve_ms_p50": None, "cost_gap": None}
+        log.info("%s: %d steps, window mean %.0f max %d", args.algorithm, len(timing.times), timing.sizes.mean(),
+                 timing.sizes.max())
+        result = _timing_result(args, settings, timing)
+        result["pinned"] = pinned
         if args.algorithm == "mm-lb-nmpc":
             # thesis 6.4.3: the min-max extension costs 5 % more than LB-NMPC; the same repeat timed again
             lb_times = time_controller(cl, hyper, windows, trials, settings, 10 ** 9, "lb-nmpc").times
             result["lb_nmpc_solve_ms_p50"] = round(float(np.percentile(lb_times, 50)), 3)
-            result["mm_overhead"] = round(float(np.percentile(times, 50) / np.percentile(lb_times, 50) - 1.0), 3)
+            result["mm_overhead"] = round(float(np.percentile(timing.times, 50) / np.percentile(lb_times, 50) - 1.0), 3)
         try:
             import casadi  # noqa: F401  (optional benchmark dependency)
         except ImportError:
             log.warning("casadi not installed (pip install casadi): no IPOPT comparison")
             return result
-        if not kept:
+        if not timing.kept:
             log.warning("no problems kept for the IPOPT comparison (lower --keep-every)")
             return result
-        ratios, gaps, ipopt_ms = [], [], []
-        if args.algorithm != "lb-nmpc":
-            # our whole step (covariance; for RC also the ladder) against IPOPT's solve of the step's NLP alone:
-            # MM's min-max in epigraph form, C/RC's corridor-constrained problem with the same slack price
-            if args.algorithm == "mm-lb-nmpc":
-                what, solve = "min-max", lambda lp: casadi_solve_minmax(lp, settings)
-            else:
-                what, solve = "constrained", lambda lp: casadi_solve_constrained(lp, lp["model"], settings)
-            failed = 0
-            for lp, ours_ms in kept:
-                sec, ipopt_value, ours_value = solve(lp)
-                if ipopt_value is None:
-                    failed += 1
-                    continue
-                ipopt_ms.append(sec * 1e3)
-                ratios.append(sec * 1e3 / ours_ms)
-                gaps.append((ours_value - ipopt_value) / max(abs(ipopt_value), 1e-12))
-            log.info("IPOPT on %d %s problems (%d failed): %.1f ms median (ours %.1fx faster); objective gap "
-                     "median %.2e, max %.2e", len(ipopt_ms), what, failed, np.median(ipopt_ms), np.median(ratios),
-                     np.median(gaps), np.max(gaps))
-            result.update({"casadi_solve_ms_p50": round(float(np.median(ipopt_ms)), 3),
-                           "cost_gap": float(np.mean(gaps)), "cost_gap_median": float(np.median(gaps)),
-                           "cost_gap_max": float(np.max(gaps)),
-                           "casadi_over_ours_time_ratio": round(float(np.median(ratios)), 2),
-                           "casadi_problems": len(ipopt_ms), "casadi_failed": failed})
-            return result
-        for ctx, model, u0 in kept:
-            problem, w_limit = build_problem(ctx, settings, DT, model)
-            t1 = time.perf_counter()
-            ours = gauss_newton(problem.residual, u0, -w_limit, w_limit, max_iter=settings.max_iter,
-                                tol=settings.tol)
-            ours_ms = (time.perf_counter() - t1) * 1e3
-            sec, ipopt_cost = casadi_solve(problem, model, u0, w_limit)
-            ipopt_ms.append(sec * 1e3)
-            ratios.append(sec * 1e3 / ours_ms)
-            gaps.append((ours.cost - ipopt_cost) / max(abs(ipopt_cost), 1e-12))
-        log.info("IPOPT on %d problems: %.1f ms median (ours %.1fx faster); cost gap median %.2e, max %.2e",
-                 len(kept), np.median(ipopt_ms), np.median(ratios), np.median(gaps), np.max(gaps))
-        result.update({"casadi_solve_ms_p50": round(float(np.median(ipopt_ms)), 3),
-                       "cost_gap": float(np.mean(gaps)), "cost_gap_max": float(np.max(gaps)),
-                       "casadi_over_ours_time_ratio": round(float(np.median(ratios)), 2),
-                       "casadi_problems": len(kept)})
+        if args.algorithm == "lb-nmpc":
+            result.update(_compare_lb(timing.kept, settings))
+        else:
+            result.update(_compare_robust(args.algorithm, timing.kept, settings))
         return result
 
 

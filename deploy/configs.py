@@ -9,7 +9,7 @@ from common.scenario import Scenario
 from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
 from services.controller.config import ControllerConfig, CorridorConfig, FLConfig, LimitsConfig, StoreClientConfig
 from services.controller.ilc import ILCGains
-from services.controller.nmpc import NMPCSettings
+from services.controller.settings import NMPCSettings
 from services.gp_store.config import BinConfig, FitConfig, StoreConfig
 from services.scheduler.config import SchedulerConfig
 from services.scheduler.core import SchedulerParams

@@ -95,7 +95,7 @@ def test_a_skipped_tick_holds_the_command_before_it():
 
 
 def test_nmpc_settings_still_validate_everything():
-    from services.controller.nmpc import NMPCSettings
+    from services.controller.settings import NMPCSettings
     for bad in (dict(actuator_tau_s=(-0.1, 0.0)), dict(actuator_tau_s=(0.1,)), dict(horizon=0),
                 dict(r_w=0.0, r_dw=0.0), dict(min_band_fraction=1.0)):
         with pytest.raises(ValueError):

@@ -9,7 +9,8 @@ from common.gp import GaussianProcess, SEHyper, fit_hyperparameters
 from common.path import Path
 from services.controller.gauss_newton import gauss_newton
 from services.controller.laws import StepContext
-from services.controller.nmpc import NMPCSettings, build_problem
+from services.controller.nmpc import build_problem
+from services.controller.settings import NMPCSettings
 
 
 def finite_horizon_lqr(A, B, Q, R, x0, K):
@@ -304,7 +305,7 @@ def test_lb_nmpc_with_the_crab_reference_matches_ipopt_on_the_same_problem():
     pose = np.array([10.0, 0.25, 0.05])
     ctx = ctx_at(path, pose, v=1.0, prev_cmd=(1.0, 0.0), model_prev=pose - [0.1, 0.0, 0.0])
     problem, w_limit = build_problem(ctx, st, 0.1, gp)
-    assert np.all(np.abs(problem.head_offset) > 0.05)
+    assert np.all(np.abs(problem.ref.head_offset) > 0.05)
     res = gauss_newton(problem.residual, problem.w_ref.copy(), -w_limit, w_limit, max_iter=50, tol=1e-8, max_evals=60)
     _, ipopt = casadi_solve(problem, gp, problem.w_ref.copy(), w_limit)
     assert ipopt * (1 - 1e-6) <= res.cost <= 1.001 * ipopt, (res.cost, ipopt)

@@ -13,9 +13,11 @@ import pytest
 from common.gp import GaussianProcess, SEHyper
 from common.path import Path
 from services.controller.corridor import Corridor
+from services.controller.corridor_sqp import constrained_residual
 from services.controller.gauss_newton import gauss_newton
 from services.controller.laws import StepContext
-from services.controller.nmpc import NMPCSettings, build_problem
+from services.controller.nmpc import build_problem
+from services.controller.settings import NMPCSettings
 from services.controller.minmax import SIGNS
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
@@ -127,16 +129,15 @@ def test_constrained_residual_jacobian_matches_finite_differences_with_the_refer
     ctx = dataclasses.replace(ctx, xi_now=(0.7, 0.05))
     for tau in ((0.0, 0.0), (0.45, 0.4)):       # without and with the drive's lag
         settings = NMPCSettings(actuator_tau_s=tau)
-        law = RCLBNMPCLaw(settings, DT)
         p, _ = build_problem(ctx, settings, DT, None)
         v = 0.5 + 0.1 * rng.random(p.K)           # well below the scheduled 0.8 m/s: the reference moves back
         w = p.w_ref + 0.1 * rng.normal(size=p.K)
-        _, _, _, r, J = law._residual(p, v, w, None)
+        *_, r, J = constrained_residual(p, v, w)
         h = 1e-6
         fd = []
         for e in np.eye(2 * p.K):
-            rp = law._residual(p, v + h * e[:p.K], w + h * e[p.K:], None)[3]
-            rm = law._residual(p, v - h * e[:p.K], w - h * e[p.K:], None)[3]
+            rp = constrained_residual(p, v + h * e[:p.K], w + h * e[p.K:])[4]
+            rm = constrained_residual(p, v - h * e[:p.K], w - h * e[p.K:])[4]
             fd.append((rp - rm) / (2 * h))
         fd = np.array(fd).T
         # the curvature-rate terms (kappa's own change with the reference, w_ref's dependence) are left out
@@ -148,7 +149,7 @@ def test_lateral_sigma_speed_jacobian_matches_finite_differences_of_the_propagat
     ctx = ctx_for(path, path.pose_at(11.0))
     p, _ = build_problem(ctx, NMPCSettings(), DT, None)
     K = p.K
-    direction = np.arctan2(p.sinD[1:], p.cD[1:])
+    direction = p.ref.direction_rad[1:]
     S0 = np.diag([1e-4, 1e-4, 1e-3])
     fixed = lambda A: np.tile([1e-6, 4e-6, 4e-4], (len(A), 1))
     # a variance growing with the speed commanded now and with the one before (as a GP's can)
@@ -228,7 +229,7 @@ def test_lateral_sigma_speed_jacobian_with_a_drive_lag_matches_finite_difference
     ctx = dataclasses.replace(ctx_for(path, path.pose_at(11.0)), xi_now=(0.6, 0.0))
     p, _ = build_problem(ctx, NMPCSettings(actuator_tau_s=(0.45, 0.4)), DT, None)
     K = p.K
-    direction = np.arctan2(p.sinD[1:], p.cD[1:])
+    direction = p.ref.direction_rad[1:]
     S0 = np.diag([1e-4, 1e-4, 1e-3])
     prior = DisturbanceVariance(None, PriorStd(base=(0.001, 0.002, 0.01), per_mps=(0.004, 0.008, 0.025)),
                                 (0.0, 0.0, 0.0))
@@ -250,7 +251,7 @@ def test_lateral_sigma_speed_jacobian_with_a_drive_lag_matches_finite_difference
     Sig = propagate(X, None, np.zeros((K, 3)), prior(inputs(v)), vb, wb, S0, DT, 2.0)
     dv, dvp = variance_speed_derivatives(prior, inputs(v), h=1e-6)
     ours = lateral_sigma_speed_jacobian(X, Sig, vb, direction, route_sigmas(Sig, direction)[:, 1], DT, dv, dvp,
-                                        p.lag[0])
+                                        p.lag.Lv)
     h = 1e-5
     fd = np.column_stack([(sig_lat(v + h * e) - sig_lat(v - h * e)) / (2 * h) for e in np.eye(K)])
     np.testing.assert_allclose(ours, fd, rtol=0.15, atol=2e-4)
@@ -280,17 +281,12 @@ def test_min_max_lowers_the_worst_case_cost_below_lb_nmpcs_solution():
     mm = law.angular(ctx)
     p, lim = build_problem(ctx, st, DT, None)
     lb = gauss_newton(p.residual, p.w_ref.copy(), -lim, lim, max_evals=30, max_iter=30)
-    bound = 3.0 * np.array(law.last_sigmas)
+    bound = law.last_step.bound
 
     def worst_cost(u):          # eq. 6.5-6.6 as written: the largest of the eight sequences' full costs
-        costs = []
-        for signs in SIGNS:
-            p.cost_errors = lambda E, signs=signs: E + signs * bound
-            costs.append(p.cost(u))
-        p.cost_errors = None
-        return max(costs)
+        return max(p.cost(u, error_offset=signs * bound) for signs in SIGNS)
 
-    assert mm.info["sigma_lat_max_m"] > 0.01
+    assert mm.uncertainty.sigma_lat_max_m > 0.01
     assert worst_cost(law.last_plan.w) < 0.95 * worst_cost(lb.u)
 
 
@@ -307,12 +303,7 @@ def test_boundary_costs_and_gradients_match_each_sequence_costed_alone():
     w = p.w_ref + rng.normal(size=p.K) * 0.1
 
     def each(u):
-        out = []
-        for signs in SIGNS:
-            p.cost_errors = lambda E, signs=signs: E + signs * bound
-            out.append(p.cost(u))
-        p.cost_errors = None
-        return np.array(out)
+        return np.array([p.cost(u, error_offset=signs * bound) for signs in SIGNS])
 
     costs, G, H = boundary_costs(p, bound, w, True)
     np.testing.assert_allclose(costs, each(w), rtol=1e-10)
@@ -342,14 +333,14 @@ def test_robust_law_keeps_the_3_sigma_region_inside_a_narrow_corridor_by_slowing
     st = NMPCSettings(sqp_iter=10)
     law = RCLBNMPCLaw(st, DT)
     res = law.angular(ctx_for(path, pose, v=1.0, corridor=narrow))
-    assert not res.stop_reason and res.info["violation"] < 1e-6
-    assert res.v_mps < 0.75 and res.info["speed_scale"] < 1.0     # slower than scheduled while this uncertain
-    plan, lp = law.last_plan, law.last_problem
-    p = lp["problem"]                                            # errors against the plan's own reference
-    lat = p.errors(plan.poses)[:, 1]
-    t = np.minimum(3.0 * lp["sig"][:, 1], lp["cap"][:, 1])
+    assert not res.stop_reason and res.uncertainty.violation < 1e-6
+    assert res.v_mps < 0.75 and res.uncertainty.speed_scale < 1.0     # slower than scheduled while this uncertain
+    step = law.last_step
+    lat = step.result.iterate.E[:, 1]                            # errors against the plan's own reference
+    sig = step.nlp.sig_start
+    t = np.minimum(3.0 * sig[:, 1], step.nlp.cap[:, 1])
     assert np.all(np.abs(lat) + t <= 0.06 + 1e-6)                # mean +- 3 sigma inside the corridor
-    assert np.all(t[1:] == 3.0 * lp["sig"][1:, 1])               # and not by the band's floor
+    assert np.all(t[1:] == 3.0 * sig[1:, 1])                     # and not by the band's floor
     c = RCLBNMPCLaw(st, DT, alpha=0.0).angular(ctx_for(path, pose, v=1.0, corridor=narrow))
     assert c.v_mps > 0.95                                        # the overconfident variant does not slow
 
@@ -384,13 +375,13 @@ def test_robust_law_keeps_turn_rate_headroom_where_slowing_down_gives_it():
         return RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT).angular(ctx)
 
     free = run(lambda v: 2.0)
-    assert free.info["speed_scale"] == 1.0 and free.v_mps > 0.95
+    assert free.uncertainty.speed_scale == 1.0 and free.v_mps > 0.95
     w_max = 1.05 * kappa                                       # the route's rate at 1 m/s is 95 % of it
     skid = run(lambda v: w_max)
-    assert skid.info["speed_scale"] < 1.0 and skid.v_mps <= 0.9 * w_max / kappa + 0.02
+    assert skid.uncertainty.speed_scale < 1.0 and skid.v_mps <= 0.9 * w_max / kappa + 0.02
     assert skid.v_mps > 0.6                                    # one rung down, not the bottom of the ladder
     ackermann = run(lambda v: min(2.0, abs(v) * w_max))        # max curvature 1.05 x the route's
-    assert ackermann.info["speed_scale"] == 1.0 and ackermann.v_mps > 0.95
+    assert ackermann.uncertainty.speed_scale == 1.0 and ackermann.v_mps > 0.95
 
 
 def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit():
@@ -507,7 +498,7 @@ def test_constrained_step_matches_ipopt_on_the_same_problem():
         law = RCLBNMPCLaw(st, DT)
         res = law.angular(ctx_for(path, path.pose_at(s0) + np.array(off), v=1.0, corridor=narrow))
         assert not res.stop_reason and res.v_mps < 0.9
-        _, ipopt_merit, ours = casadi_solve_constrained(law.last_problem, None, st)
+        _, ipopt_merit, ours = casadi_solve_constrained(law.last_step, st)
         assert ipopt_merit is not None and ours <= 1.001 * ipopt_merit, (ours, ipopt_merit)
 
 
@@ -522,7 +513,7 @@ def test_min_max_step_matches_ipopt_on_the_same_problem():
     for s0, off in ((4.0, [0.0, 0.15, 0.0]), (11.0, [0.0, -0.05, 0.04])):
         law = MMLBNMPCLaw(st, DT)
         law.angular(ctx_for(path, path.pose_at(s0) + np.array(off)))
-        _, ipopt_cost, ours = casadi_solve_minmax(law.last_problem, st)
+        _, ipopt_cost, ours = casadi_solve_minmax(law.last_step, st)
         assert ipopt_cost is not None and ipopt_cost * (1 - 1e-6) <= ours <= 1.005 * ipopt_cost, (ours, ipopt_cost)
 
 
@@ -537,9 +528,9 @@ def test_rc_lb_nmpc_takes_the_learned_crab_at_the_speeds_it_slows_down_to():
     law = RCLBNMPCLaw(st, DT, lambda c: gp)
     pose = np.array([10.0, 0.0, -math.atan2(SLIDE, 0.1)])
     res = law.angular(ctx_for(path, pose, v=1.0, corridor=Corridor(path.s, 0.05, math.radians(20))))
-    lp = law.last_problem
-    v0 = lp["v0"]
-    assert not res.stop_reason and res.info["speed_scale"] < 0.9 and v0[1] >= 0.3
+    step = law.last_step
+    v0 = step.start.v
+    assert not res.stop_reason and res.uncertainty.speed_scale < 0.9 and v0[1] >= 0.3
     # build_problem's offsets are the schedule's (1 m/s: 0.100 rad); at 0.7 m/s it takes 0.075 rad
     expected = -np.arctan2(SLIDE, v0[1:] * DT) - TEACH_CRAB          # j = 1..K-1 leave at v0[1..K-1]
-    np.testing.assert_allclose(lp["problem"].head_offset[:-1], np.clip(expected, -0.2, 0.2), atol=3e-3)
+    np.testing.assert_allclose(step.nlp.problem.ref.head_offset[:-1], np.clip(expected, -0.2, 0.2), atol=3e-3)

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from services.controller.ilc import ILCGains
-from services.controller.nmpc import NMPCSettings
+from services.controller.settings import NMPCSettings
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -138,5 +138,5 @@ class ILCLaw:
         w_fb = fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.fl)
         w_ff = float(self.memory.w_ff[ctx.vertex])
         self.memory.record(ctx.vertex, ctx.e_lat_m, ctx.e_head_rad)
-        return LawResult(w_fb + w_ff, info={"w_ff": w_ff, "w_fb": w_fb})
+        return LawResult(w_fb + w_ff, feedforward_radps=w_ff)
 

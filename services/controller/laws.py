@@ -5,7 +5,7 @@ the tracker set. Every law sees the same StepContext, so FL, ILC and the NMPC fa
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Protocol
 
 import numpy as np
@@ -43,14 +43,39 @@ class StepContext:
     v_max_mps: float = float("inf")      # the robot's speed limit (the constrained laws choose v)
 
 
-@dataclass
+@dataclass(frozen=True)
+class SolveReport:
+    """What an optimizing law's solve did this step."""
+    cost: float
+    iterations: int
+    evaluations: int     # residual evaluations (the budget that bounds the step's time)
+    status: str          # converged | budget | stalled | qp-failed | non-finite
+    learned: bool        # the local window's GP was in the model
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+
+@dataclass(frozen=True)
+class UncertaintyReport:
+    """The predicted spread along the horizon (MM-, C-, RC-LB-NMPC)."""
+    sigma_lat_max_m: float
+    sigma_head_max_rad: float
+    speed_scale: float = 1.0    # RC: the share of the scheduled speeds the speed ladder allowed
+    violation: float = 0.0      # C/RC: the largest tightened-corridor violation the plan needed
+    worst_case: int = -1        # MM: index into minmax.SIGNS of the worst boundary sequence
+
+
+@dataclass(frozen=True)
 class LawResult:
     w_radps: float
-    iterations: int = 0
-    predicted: np.ndarray | None = None   # (K, 3) predicted poses in the route frame, if the law predicts
-    info: dict = field(default_factory=dict)
     v_mps: float | None = None            # a law that optimizes the speed too (C-/RC-LB-NMPC) sets it
+    predicted: np.ndarray | None = None   # (K, 3) predicted poses in the route frame, if the law predicts
     stop_reason: str = ""                 # the law cannot go on safely: stop the robot and say why
+    solve: SolveReport | None = None
+    uncertainty: UncertaintyReport | None = None
+    feedforward_radps: float = 0.0        # ILC: the learned part of w_radps
 
 
 class SteeringLaw(Protocol):

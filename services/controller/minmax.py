@@ -18,11 +18,10 @@ sparsity pattern is fixed, so one OSQP workspace is updated in place and warm-st
 from __future__ import annotations
 
 import numpy as np
-import osqp
-import scipy.sparse as sp
 
 from services.controller.gauss_newton import GNResult
-from services.controller.sqp_qp import USABLE, _pattern
+from services.controller.horizon import HorizonProblem
+from services.controller.osqp_workspace import FixedPatternQP
 
 SIGNS = np.array([[sx, sy, sh] for sx in (1, -1) for sy in (1, -1) for sh in (1, -1)], dtype=float)  # eq. 6.5
 
@@ -32,70 +31,46 @@ class MinMaxQP:
         self.K, self.m = K, n_seq
         n = K + 1
         p_mask = np.zeros((n, n), dtype=bool)
-        p_mask[:K, :K] = np.triu(np.ones((K, K), dtype=bool))
+        p_mask[:K, :K] = True
         a_mask = np.zeros((n_seq + K, n), dtype=bool)
         a_mask[:n_seq] = True
         a_mask[n_seq + np.arange(K), np.arange(K)] = True
-        self._p, self._a = _pattern(p_mask), _pattern(a_mask)
+        self._qp = FixedPatternQP(p_mask, a_mask, eps_abs=1e-7, eps_rel=1e-7, max_iter=4000)
         self._A = np.zeros((n_seq + K, n))
         self._A[:n_seq, K] = -1.0
         self._A[n_seq:, :K] = np.eye(K)
         self._P = np.zeros((n, n))
-        self._solver: osqp.OSQP | None = None
+        self._q = np.zeros(n)
+        self._q[K] = 1.0
 
     def solve(self, c: np.ndarray, G: np.ndarray, H: np.ndarray, lo: np.ndarray, hi: np.ndarray):
         """Step d (K,) and the model's worst-case value t, or (None, None)."""
         K, m = self.K, self.m
         self._P[:K, :K] = H
         self._A[:m, :K] = G
-        q = np.zeros(K + 1)
-        q[K] = 1.0
-        lo_c = np.concatenate([np.full(m, -np.inf), lo])
-        hi_c = np.concatenate([-c, hi])
-        prow, pcol, pptr = self._p
-        arow, acol, aptr = self._a
-        Px, Ax = self._P[prow, pcol], self._A[arow, acol]
-        if self._solver is None:
-            self._solver = osqp.OSQP()
-            self._solver.setup(sp.csc_matrix((Px, prow, pptr), shape=(K + 1, K + 1)), q,
-                               sp.csc_matrix((Ax, arow, aptr), shape=(m + K, K + 1)), lo_c, hi_c, verbose=False,
-                               eps_abs=1e-7, eps_rel=1e-7, max_iter=4000, polishing=True)
-        else:
-            self._solver.update(Px=Px, Ax=Ax, q=q, l=lo_c, u=hi_c)
-        res = self._solver.solve(raise_error=False)
-        x = res.x
-        if x is None or res.info.status_val not in USABLE or not np.all(np.isfinite(x)):
-            self._solver = None
+        x = self._qp.solve(self._P, self._q, self._A, np.concatenate([np.full(m, -np.inf), lo]),
+                           np.concatenate([-c, hi]))
+        if x is None:
             return None, None
         return x[:K], float(x[K])
 
 
-def boundary_costs(problem, bound: np.ndarray, w: np.ndarray, with_grad: bool):
-    """Costs (8,) of the boundary sequences at w; with_grad also their gradients (8, K) and the
-    Gauss-Newton Hessian of the worst. Uses `problem.residual` of the mean sequence once."""
+def boundary_costs(problem: HorizonProblem, bound: np.ndarray, w: np.ndarray, with_grad: bool):
+    """Costs (8,) of the boundary sequences E + s_l * bound at w (eq. 6.5-6.6); with_grad also their
+    gradients (8, K) and the Gauss-Newton Hessian of the worst. The eight share every residual but the
+    errors' offsets, so one rollout of the mean serves them all."""
     K = problem.K
     L = problem.s.lookahead_m
-    saved = problem.cost_errors, problem.extra_residuals
-    problem.cost_errors = problem.extra_residuals = None
-    try:
-        if with_grad:
-            r, J = problem.residual(w)
-            dE = problem.last_dE
-        E = problem.cost_frame(problem.errors(problem.rollout(w, with_jac=False)[0]))   # (memoized rollout)
-        if not with_grad:
-            r = np.concatenate([(E * problem.sqrt_q).ravel(), problem.sqrt_r * (w - problem.w_ref),
-                                problem._extra(w, E)])
-    finally:
-        problem.cost_errors, problem.extra_residuals = saved
-    n_e = 3 * K
-    r_in = r[n_e:5 * K]
+    E, dE = problem.tracking(w, with_jac=with_grad)
+    r_in = problem.input_residuals(w)
     El = E[None] + SIGNS[:, None, :] * bound[None]                   # (8, K, 3): all sequences at once
-    Rq = (El * problem.sqrt_q).reshape(len(SIGNS), n_e)
+    Rq = (El * problem.sqrt_q).reshape(len(SIGNS), 3 * K)
     terms = problem.sqrt_qt * (El[:, -1, 1] + L * np.sin(El[:, -1, 2]))
     costs = 0.5 * (np.einsum("li,li->l", Rq, Rq) + float(r_in @ r_in) + terms ** 2)
     if not with_grad:
         return costs
-    Jq, J_in = J[:n_e], J[n_e:5 * K]
+    Jq = (dE * problem.sqrt_q[None, :, None]).reshape(3 * K, K)
+    J_in = problem.input_jacobian()
     jt = problem.sqrt_qt * (dE[-1, 1][None] + L * np.cos(El[:, -1, 2])[:, None] * dE[-1, 2][None])   # (8, K)
     G = Rq @ Jq + (J_in.T @ r_in)[None] + jt * terms[:, None]
     worst = int(np.argmax(costs))

@@ -32,7 +32,7 @@ from services.controller.laws import FLLaw, SteeringLaw
 from services.controller.local_model import LocalModels, hold_steps_for
 from services.controller.nmpc import LBNMPCLaw
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
-from services.controller.tracker import PathTracker, TrackerLimits
+from services.controller.tracker import Decision, PathTracker, TrackerLimits
 
 AVAILABLE_ALGORITHMS = ("fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc")
 
@@ -232,23 +232,37 @@ class ControllerService(Service):
         # the command first: everything below is bookkeeping that must not delay it
         self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
                                                       v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
-        window_n, hyper_version = 0, 0
         if self.outbox is not None:
             if obs is not None:
                 self.outbox.add(stamp_s=obs.stamp_s, trial=self.trial, path_id=self.path_id, vertex=obs.vertex,
                                 v_cmd_mps=obs.v_cmd_mps, a=obs.a, g=obs.g)
             self.outbox.flush()
-        if self.cache is not None:
-            speed = d.v_mps if d.v_mps > 0 else self.speed_mps   # the scheduled speed here, when moving
-            self.cache.set_position(d.vertex, speed)
-            if self.models is not None:   # the window the NMPC actually predicted with
-                window_n, hyper_version = self.models.last_n, self.models.last_version
-            else:
-                window_n = len(self.cache.local(d.vertex, speed).A)
-                hyper_version = self.cache.hyper.version if self.cache.hyper is not None else 0
-        pred = d.predicted if d.predicted is not None else np.zeros((0, 3))
-        info = d.info or {}
-        status = ControllerStatus(
+        window_n, hyper_version = self._follow_window(d)
+        # the command must arrive; a status may be dropped under congestion rather than stall the loop
+        self.node.publish(self.k_status, self._status(d, now_s, tick, solve_ms, window_n, hyper_version),
+                          droppable=True)
+        if self.models is not None and d.v_mps > 0:
+            # the next window's GP now, while the robot drives on this command (local_model.py)
+            self.models.prepare(self.core.path, d.distance_m + d.v_mps * self.cfg.period_s, d.v_mps)
+
+    def _follow_window(self, d: Decision) -> tuple[int, int]:
+        """Moves the prefetch to where the robot is; returns the size of the window the law predicted
+        with and the hyperparameters' version."""
+        if self.cache is None:
+            return 0, 0
+        speed = d.v_mps if d.v_mps > 0 else self.speed_mps   # the scheduled speed here, when moving
+        self.cache.set_position(d.vertex, speed)
+        if self.models is not None:
+            return self.models.last_n, self.models.last_version
+        hyper = self.cache.hyper
+        return len(self.cache.local(d.vertex, speed).A), hyper.version if hyper is not None else 0
+
+    def _status(self, d: Decision, now_s: float, tick: int, solve_ms: float, window_n: int,
+                hyper_version: int) -> ControllerStatus:
+        law = d.law
+        pred = law.predicted if law is not None and law.predicted is not None else np.zeros((0, 3))
+        unc = law.uncertainty if law is not None else None
+        return ControllerStatus(
             stamp_s=now_s, tick=tick, trial=self.trial, algorithm=self.cfg.algorithm, state=d.state,
             reason=d.reason, path_id=self.path_id, vertex=d.vertex, distance_m=d.distance_m,
             lateral_m=d.lateral_m, heading_rad=d.heading_rad, v_cmd_mps=d.v_mps, w_cmd_radps=d.w_radps,
@@ -257,15 +271,10 @@ class ControllerService(Service):
             experiences_sent=self.outbox.acked + self.outbox.pending if self.outbox else 0,
             experiences_pending=self.outbox.pending if self.outbox else 0,
             window_experiences=window_n, hyper_version=hyper_version,
-            w_ff_radps=float(info.get("w_ff", 0.0)), pred_x_m=pred[:, 0].tolist(),
+            w_ff_radps=law.feedforward_radps if law is not None else 0.0, pred_x_m=pred[:, 0].tolist(),
             pred_y_m=pred[:, 1].tolist(), pred_theta_rad=pred[:, 2].tolist(),
-            sigma_lat_m=float(info.get("sigma_lat_max_m", 0.0)), sigma_head_rad=float(info.get("sigma_head_max_rad", 0.0)),
-            solver_status=str(info.get("status", "")))
-        # the command must arrive; a status may be dropped under congestion rather than stall the loop
-        self.node.publish(self.k_status, status, droppable=True)
-        if self.models is not None and d.v_mps > 0:
-            # the next window's GP now, while the robot drives on this command (local_model.py)
-            self.models.prepare(self.core.path, d.distance_m + d.v_mps * self.cfg.period_s, d.v_mps)
+            sigma_lat_m=unc.sigma_lat_max_m if unc else 0.0, sigma_head_rad=unc.sigma_head_max_rad if unc else 0.0,
+            solver_status=law.solve.status if law is not None and law.solve is not None else "")
 
     def close(self) -> None:
         if self.cache is not None:

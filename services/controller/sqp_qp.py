@@ -10,26 +10,13 @@ Variables z = (dv_0..dv_{K-1}, dw_0..dw_{K-1}, s_lat (K), s_head (K)):
          lo_d <= d <= hi_d                                             (actuator limits, trust region)
          s >= 0
 
-The sparsity pattern depends only on K, so the matrices are written into fixed CSC patterns and passed
-to OSQP with `update` (no set-up and no scipy.sparse assembly per iteration; it costs more than the
-solve at this size), and OSQP warm-starts from the previous iterate's solution and multipliers.
+The sparsity pattern depends only on K: one OSQP workspace (osqp_workspace.py) is updated in place.
 """
 from __future__ import annotations
 
 import numpy as np
-import osqp
-import scipy.sparse as sp
 
-# OSQP status values whose point is a usable direction (solved, solved inaccurate, out of iterations);
-# the caller's merit test decides whether it helps
-USABLE = {int(osqp.SolverStatus[k].value) for k in ("OSQP_SOLVED", "OSQP_SOLVED_INACCURATE", "OSQP_MAX_ITER_REACHED")}
-
-
-def _pattern(mask: np.ndarray):
-    """CSC arrays of a dense boolean mask and the (row, col) of each stored entry, in CSC order."""
-    cols, rows = np.nonzero(mask.T)           # column-major: sorted by column, then row
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(cols, minlength=mask.shape[1]))])
-    return rows, cols, indptr
+from services.controller.osqp_workspace import FixedPatternQP
 
 
 class CorridorQP:
@@ -38,7 +25,7 @@ class CorridorQP:
         self.rho = slack_weight
         n, m = 4 * K, 8 * K
         p_mask = np.zeros((n, n), dtype=bool)
-        p_mask[:2 * K, :2 * K] = np.triu(np.ones((2 * K, 2 * K), dtype=bool))
+        p_mask[:2 * K, :2 * K] = True
         p_mask[np.arange(2 * K, n), np.arange(2 * K, n)] = True
         a_mask = np.zeros((m, n), dtype=bool)
         a_mask[:4 * K, :2 * K] = True
@@ -46,21 +33,17 @@ class CorridorQP:
         for blk, off in ((0, 2 * K), (1, 2 * K), (2, 3 * K), (3, 3 * K)):
             a_mask[blk * K + i, off + i] = True
         a_mask[4 * K + np.arange(n), np.arange(n)] = True
-        self._p = _pattern(p_mask)
-        self._a = _pattern(a_mask)
+        self._qp = FixedPatternQP(p_mask, a_mask, eps_abs=1e-5, eps_rel=1e-5, max_iter=2000)
         self._P = np.zeros((n, n))
         self._P[2 * K:, 2 * K:] = np.eye(2 * K) * slack_weight
         self._A = np.zeros((m, n))
         self._A[4 * K:, :] = np.eye(n)
         for blk, off, sign in ((0, 2 * K, -1), (1, 2 * K, 1), (2, 3 * K, -1), (3, 3 * K, 1)):
             self._A[blk * K + i, off + i] = sign
-        self._solver: osqp.OSQP | None = None
-        self.setups = 0
 
     def solve(self, r, J, E, dE, tight, dtight_v, lo_lat, hi_lat, head_lim, lo_d, hi_d):
         """The step d (2K) and the largest slack used, or (None, 0) when OSQP gives nothing usable."""
         K = self.K
-        n = 4 * K
         H = J.T @ J
         H[np.diag_indices(2 * K)] += 1e-6
         self._P[:2 * K, :2 * K] = H
@@ -78,20 +61,7 @@ class CorridorQP:
                              lo_d, np.zeros(2 * K)])
         hi = np.concatenate([hi_lat - E[:, 1] - tight[:, 1], inf, head_lim - E[:, 2] - tight[:, 2], inf,
                              hi_d, np.full(2 * K, np.inf)])
-        prow, pcol, pptr = self._p
-        arow, acol, aptr = self._a
-        Px, Ax = self._P[prow, pcol], A[arow, acol]
-        if self._solver is None:
-            self._solver = osqp.OSQP()
-            self._solver.setup(sp.csc_matrix((Px, prow, pptr), shape=(n, n)), q,
-                               sp.csc_matrix((Ax, arow, aptr), shape=(8 * K, n)), lo, hi, verbose=False,
-                               eps_abs=1e-5, eps_rel=1e-5, max_iter=2000, polishing=True)
-            self.setups += 1
-        else:
-            self._solver.update(Px=Px, Ax=Ax, q=q, l=lo, u=hi)
-        res = self._solver.solve(raise_error=False)
-        x = res.x
-        if x is None or res.info.status_val not in USABLE or not np.all(np.isfinite(x)):
-            self._solver = None            # start clean next time: a failed workspace warm-starts badly
+        x = self._qp.solve(self._P, q, A, lo, hi)
+        if x is None:
             return None, 0.0
         return x[:2 * K], float(max(np.max(x[2 * K:], initial=0.0), 0.0))

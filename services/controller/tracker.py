@@ -22,6 +22,9 @@ from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 
+# what a law may fail with numerically (ArithmeticError: FloatingPointError, OverflowError, ZeroDivisionError)
+NUMERICAL_FAILURES = (ArithmeticError, np.linalg.LinAlgError)
+
 
 @dataclass(frozen=True)
 class TrackerLimits:
@@ -44,9 +47,11 @@ class Decision:
     lateral_m: float
     heading_rad: float
     loc_age_s: float
-    iterations: int = 0
-    predicted: np.ndarray | None = None
-    info: dict | None = None
+    law: LawResult | None = None     # what the steering law reported, when it ran this step
+
+    @property
+    def iterations(self) -> int:
+        return self.law.solve.iterations if self.law is not None and self.law.solve is not None else 0
 
 
 class PathTracker:
@@ -164,14 +169,7 @@ class PathTracker:
                           delayed_cmds=delayed, cmd_before_capture=before, xi_capture=xi_capture, xi_now=xi_now,
                           pose_cov=self._route_cov(last),
                           corridor=self.corridor, v_max_mps=self.limits.v_max_mps)
-        reason = ""
-        try:
-            res: LawResult = self.law.angular(ctx)
-            if not math.isfinite(res.w_radps):
-                raise FloatingPointError(f"{self.law.name} returned w = {res.w_radps}")
-        except Exception as exc:  # numerical trouble in a law must not become a wild command
-            res = self._fallback.angular(ctx)
-            reason = f"{self.law.name} failed ({type(exc).__name__}: {exc}); feedback linearization this step"
+        res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
             return stop("stopped", res.stop_reason)
@@ -180,8 +178,19 @@ class PathTracker:
         w_limit = self.limits.w_limit(v)
         w = max(-w_limit, min(w_limit, res.w_radps))
         self._last_cmd = (v, w)
-        return Decision(v, w, "tracking", reason, vertex, dist, lat, head, age, res.iterations, res.predicted,
-                        res.info)
+        return Decision(v, w, "tracking", reason, vertex, dist, lat, head, age, res)
+
+    def _run_law(self, ctx: StepContext) -> tuple[LawResult, str]:
+        """The law's result, or feedback linearization for this step when the law failed numerically (a
+        singular matrix, an overflow, a non-finite command); any other error is a bug and propagates."""
+        try:
+            res = self.law.angular(ctx)
+            if not math.isfinite(res.w_radps):
+                raise FloatingPointError(f"{self.law.name} returned w = {res.w_radps}")
+            return res, ""
+        except NUMERICAL_FAILURES as exc:
+            return (self._fallback.angular(ctx),
+                    f"{self.law.name} failed ({type(exc).__name__}: {exc}); feedback linearization this step")
 
     def _route_cov(self, loc: LocState) -> np.ndarray:
         """The estimate's covariance turned from the vertex frame into the route's frame."""

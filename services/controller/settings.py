@@ -1,0 +1,74 @@
+"""Settings of the NMPC laws: the controller config's [nmpc] table and the scenario's [controller.nmpc]."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from services.controller.actuator import ActuatorLag
+from services.controller.uncertainty import PriorStd
+
+_PRIOR = PriorStd()
+
+
+@dataclass(frozen=True, kw_only=True)
+class NMPCSettings:
+    """Weights (eq. 5.16, 7.2) and solver settings of LB-, MM-, C- and RC-LB-NMPC; one set of defaults."""
+    horizon: int = 10
+    q_along: float = 1.0      # 1/m^2, on the along-route error
+    q_lat: float = 40.0       # 1/m^2, on the lateral error
+    q_head: float = 10.0      # 1/rad^2, on the heading error
+    r_w: float = 0.2          # s^2/rad^2, on w - v kappa (the route's own turn rate keeps curves unbiased)
+    r_dw: float = 1.0         # s^2/rad^2, on w_j - w_{j-1}
+    q_terminal: float = 100.0 # 1/m^2, on the lateral error lookahead_m ahead of the last predicted pose
+    lookahead_m: float = 1.5  # a one-second horizon is too short to see a lateral correction pay off
+    max_iter: int = 10        # solver iterations per step at most
+    max_evals: int = 6        # residual evaluations per step at most: bounds the solve time
+    tol: float = 1e-3         # rad/s: stop when no angular rate moves more than this
+    delay_compensation: bool = True   # eq. 7.12: start from the estimate carried forward to now
+    # --- MM-, C- and RC-LB-NMPC (chapters 6, 7) ---
+    sp_gamma: float = 2.0     # sigma-point scaling (eq. 6.10-6.14; thesis 6.4.2)
+    mm_sigmas: float = 3.0    # MM: boundary sequences at +-mm_sigmas sigma (eq. 6.5)
+    alpha: float = 3.0        # RC: corridor tightened by alpha * sigma (eq. 7.4); C-LB-NMPC uses 0
+    r_v: float = 4.0          # s^2/m^2, on v - v_desired (eq. 7.2's u_d: the scheduled speed)
+    r_dv: float = 2.0         # s^2/m^2, on v_j - v_{j-1}
+    v_min_mps: float = 0.05   # C/RC: the slowest the law may choose while moving
+    slack_weight: float = 2000.0    # C/RC: L1 price of violating a (tightened) corridor limit
+    sqp_iter: int = 4         # C/RC: SQP iterations per step at most
+    # the a-priori std of the unicycle model's error per period (body frame: along, lateral, heading),
+    # base + per_mps |v| + per_radps |w|: slip and lag grow with speed and with turning
+    prior_std_base: tuple[float, float, float] = _PRIOR.base
+    prior_std_per_mps: tuple[float, float, float] = _PRIOR.per_mps
+    prior_std_per_radps: tuple[float, float, float] = _PRIOR.per_radps
+    # C/RC beyond the first step: the tightened band keeps at least this fraction of the corridor (the
+    # open-loop covariance ignores the localization updates still to come)
+    min_band_fraction: float = 0.2
+    process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)   # floor for what never repeats
+    # the drive's first-order lag (v, w) in seconds, from a step test (actuator.py); 0: eq. 5.26 as is
+    actuator_tau_s: tuple[float, float] = (0.0, 0.0)
+    # with a learned model, weigh the heading error against the crab angle the model needs to hold the
+    # route at the planned speed (nmpc.crab_offsets), not the taught heading, which holds the teach
+    # speed's crab: for repeats well above the teach speed on ground that slides the robot sideways
+    crab_reference: bool = False
+
+    def __post_init__(self):
+        for name in ("prior_std_base", "prior_std_per_mps", "prior_std_per_radps", "process_std"):   # TOML gives lists
+            value = tuple(float(x) for x in getattr(self, name))
+            if len(value) != 3 or min(value) < 0:
+                raise ValueError(f"{name}: three non-negative values (along, lateral, heading)")
+            object.__setattr__(self, name, value)
+        tau = tuple(float(x) for x in self.actuator_tau_s)
+        if len(tau) != 2 or min(tau) < 0:
+            raise ValueError("actuator_tau_s: two non-negative time constants (v, w) in seconds")
+        object.__setattr__(self, "actuator_tau_s", tau)
+        if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
+                self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw, self.q_terminal, self.lookahead_m) < 0:
+            raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
+        if self.r_w + self.r_dw <= 0:
+            raise ValueError("r_w or r_dw must be > 0 (eq. 5.3 needs R positive definite)")
+        if not 0.0 <= self.min_band_fraction < 1.0:
+            raise ValueError("min_band_fraction must be in [0, 1)")
+
+    def lag(self, dt: float) -> ActuatorLag:
+        return ActuatorLag(self.actuator_tau_s[0], self.actuator_tau_s[1], dt)
+
+    def prior_std(self) -> PriorStd:
+        return PriorStd(base=self.prior_std_base, per_mps=self.prior_std_per_mps, per_radps=self.prior_std_per_radps)

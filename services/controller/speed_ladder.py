@@ -1,0 +1,69 @@
+"""RC-LB-NMPC's speed cap (thesis 7.3: "slows down while uncertain"): the fastest of a ladder of
+slowed-down speed profiles whose 3-sigma region, with the band left to the mean, fits the corridor over
+the whole horizon. Uncertainty grows with speed, so slowing down is what makes an uncertain plan fit.
+
+A rung fits when alpha * sigma of its own plan stays inside the band cap, and the turn rates that follow
+the route at its speeds (with last step's corrections, scaled) keep some headroom below the drive's
+turn-rate limit: a plan pinned at the limit cannot correct anything. Only the rate limit counts, the one
+slowing down relieves; an Ackermann's curvature limit binds at every speed alike (the SQP keeps to it).
+The ladder climbs one rung per step at most and descends as far as needed; the SQP then fine-tunes
+below the cap. Without it the band is infeasible at the scheduled speed, the slack price dominates the
+cost and the plan flips between steps.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.controller.horizon import HorizonProblem
+from services.controller.horizon_covariance import HorizonCovariance
+
+SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)   # shares of the scheduled speeds
+TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's turn-rate limit
+
+
+@dataclass(frozen=True)
+class Rung:
+    """A rung's plan: speeds, turn rates, their covariance, and the problem following those speeds
+    (whose rollout with sensitivities is memoized: the SQP's first iterate)."""
+    index: int
+    problem: HorizonProblem
+    v: np.ndarray
+    w: np.ndarray
+    Sigma: np.ndarray       # (K+1, 3, 3)
+    sig: np.ndarray         # (K, 3) route-frame standard deviations of x_1..x_K
+
+    @property
+    def scale(self) -> float:
+        return SPEED_LADDER[self.index]
+
+
+def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
+              a_out: np.ndarray, v_min: float) -> Rung:
+    """The rung's own profile, tested at its own speeds: a rung "fitted" at the warm start's slower
+    speeds would be driven at the rung's and fall back next step (two-step chatter)."""
+    vk = np.clip(SPEED_LADDER[k] * base.v, v_min, None)
+    p = base.following(vk)
+    v0 = np.maximum(v, 1e-3)
+    wk = vk * p.ref.kappa + (w - v * base.ref.kappa) * vk / v0    # same path, corrections scaled with speed
+    X = p.rollout(wk, with_jac=True, v=vk, with_v_jac=True, a_out=a_out)[0]
+    Sig, sig = cov.along(p, X, a_out, vk, wk)
+    return Rung(k, p, vk, wk, Sig, sig)
+
+
+def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
+                         cap: np.ndarray, alpha: float, w_rate_cap: float, last_index: int | None,
+                         a_out: np.ndarray) -> Rung:
+    """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits
+    (or the bottom rung). `cap` (K, 3): the most alpha * sigma may take of the corridor; `w_rate_cap`:
+    the drive's turn-rate limit at any speed. `a_out` (K, 9) receives the chosen rung's GP inputs."""
+    k = 0 if last_index is None else max(last_index - 1, 0)
+    while True:
+        rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps)
+        t = alpha * rung.sig[1:]
+        fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])
+                    and np.all(np.abs(rung.w) <= TURN_HEADROOM * w_rate_cap))
+        if fits or k + 1 == len(SPEED_LADDER):
+            return rung
+        k += 1
