@@ -114,6 +114,34 @@ def test_stops_at_once_when_lost():
     assert d.state == "stopped" and d.v_mps == 0.0 and "lost" in d.reason
 
 
+class FailingLaw:
+    name = "failing"
+
+    def __init__(self, exc: Exception):
+        self.exc = exc
+
+    def angular(self, ctx):
+        raise self.exc
+
+
+@pytest.mark.parametrize("exc", [np.linalg.LinAlgError("singular"), FloatingPointError("overflow"),
+                                 ZeroDivisionError("division")])
+def test_a_law_failing_numerically_gives_feedback_linearization_for_that_step(exc):
+    tr = PathTracker(PATH, FailingLaw(exc), LIMITS, speed_mps=0.5)
+    d = tr.step(1.0, loc(1.0))
+    fl = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=0.5).step(1.0, loc(1.0))
+    assert d.state == "tracking" and d.w_radps == pytest.approx(fl.w_radps)
+    assert "failing failed" in d.reason and "feedback linearization" in d.reason
+
+
+@pytest.mark.parametrize("exc", [KeyError("sigma_lat_max_m"), AttributeError("no such field"), TypeError("args")])
+def test_a_law_with_a_programming_error_fails_loudly(exc):
+    """Only numerical failures fall back to FL: a bug in a law must fail the tests, not drive on FL."""
+    tr = PathTracker(PATH, FailingLaw(exc), LIMITS, speed_mps=0.5)
+    with pytest.raises(type(exc)):
+        tr.step(1.0, loc(1.0))
+
+
 def test_slows_into_the_end_and_finishes():
     tr = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=1.0, stop_decel_mps2=0.4)
     assert tr.step(0.0, loc(0.0, x=2.0, y=0.0)).v_mps == pytest.approx(1.0)
