@@ -34,10 +34,12 @@ from services.controller.corridor import Corridor
 from services.controller.gauss_newton import gauss_newton
 from services.controller.horizon import HorizonProblem
 from services.controller.laws import LawResult, StepContext
-from services.controller.local_model import LocalModels, hold_steps_for
+from services.controller.fl import FLGains
+from services.controller.local_model import LocalModels
 from services.controller.minmax import SIGNS
-from services.controller.nmpc import LBNMPCLaw, build_problem
-from services.controller.robust_nmpc import CorridorStep, MinMaxStep, MMLBNMPCLaw, RCLBNMPCLaw
+from services.controller.nmpc import build_problem
+from services.controller.registry import STEERING_LAWS, LawInputs
+from services.controller.robust_nmpc import CorridorStep, MinMaxStep
 from services.controller.settings import NMPCSettings
 from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
 from services.gp_store.db import BinPolicy, ExperienceDB
@@ -81,8 +83,7 @@ def build_memory(seed: int, workdir: str):
     return cl, path, hyper, windows, trial, len(A)
 
 
-LAWS = {"lb-nmpc": LBNMPCLaw, "mm-lb-nmpc": MMLBNMPCLaw,
-        "c-lb-nmpc": lambda st, dt, m: RCLBNMPCLaw(st, dt, m, alpha=0.0), "rc-lb-nmpc": RCLBNMPCLaw}
+LAWS = [name for name, e in STEERING_LAWS.items() if e.learns == "gp"]     # the NMPC family
 
 
 @dataclass
@@ -125,10 +126,12 @@ class TimedLaw:
 def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, settings: NMPCSettings,
                     keep_every: int, algorithm: str = "lb-nmpc") -> Timing:
     # the windows drawn as the node draws them (C/RC hold the window's speed bin: node.py)
+    entry = STEERING_LAWS[algorithm]
     models = LocalModels(lambda v, s: windows[(v, int(math.floor(s / POLICY.v_bin_mps)))], lambda: hyper,
-                         settings.horizon * DT, POLICY.v_bin_mps, hold_steps=hold_steps_for(algorithm))
-    timed = TimedLaw(LAWS[algorithm](settings, DT, models.model_for), models, keep_every)
-    corridor = Corridor(cl.path.s, 0.3, math.radians(20.0)) if algorithm in ("c-lb-nmpc", "rc-lb-nmpc") else None
+                         settings.horizon * DT, POLICY.v_bin_mps, hold_steps=entry.window_hold_steps)
+    law = entry.build(LawInputs(FLGains(), settings, DT, models.model_for))
+    timed = TimedLaw(law, models, keep_every)
+    corridor = Corridor(cl.path.s, 0.3, math.radians(20.0)) if entry.needs_corridor else None
     cl.repeat(trial + 1, SPEEDS[1], law=timed, corridor=corridor)
     return Timing(np.array(timed.times), np.array(timed.sizes), timed.kept, np.array(timed.evals), timed.statuses,
                   np.array(timed.prepare), models.builds - models.prepared)
@@ -425,7 +428,7 @@ def run_bench(args) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="lbc bench controller", description=__doc__.splitlines()[0])
-    parser.add_argument("--algorithm", default="lb-nmpc", choices=sorted(LAWS))
+    parser.add_argument("--algorithm", default="lb-nmpc", choices=LAWS)
     parser.add_argument("--horizon", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep-every", type=int, default=20, help="compare every n-th problem with IPOPT")

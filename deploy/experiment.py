@@ -28,13 +28,12 @@ from common.messages import (ControllerStatus, ControlReply, ControlRequest, Exp
 from common.path import Path, RouteRecorder
 from common.scenario import Scenario, load_scenario
 from deploy.configs import service_configs, write_service_configs
-from deploy.launcher import Launcher
+from deploy.launcher import LaunchError, Launcher
 from deploy.learned import predict_trial
 from deploy.metrics import TrialRecord, trial_metrics, truth_series
 from deploy.recorder import McapRecorder
 from deploy.router import free_port
 from services.bridge.teach_driver import smooth_waypoints
-from services.controller.node import AVAILABLE_ALGORITHMS
 
 log = logging.getLogger(__name__)
 ROBOT_SERVICES = ("localizer", "controller", "bridge")
@@ -54,10 +53,8 @@ class ExperimentError(RuntimeError):
 
 
 def check_supported(sc: Scenario) -> None:
-    """Refuse, with a clear reason, what this version cannot run yet (rather than run something else)."""
-    if sc.controller.algorithm not in AVAILABLE_ALGORITHMS:
-        raise ConfigError(f"controller.algorithm = {sc.controller.algorithm!r} is not available in this version "
-                          f"(available: {', '.join(AVAILABLE_ALGORITHMS)})")
+    """Refuse, with a clear reason, what this version cannot run yet (rather than run something else).
+    The algorithm's name is checked where the scenario is loaded (every name there has a steering law)."""
     if sc.scheduler.enabled and sc.trials.speeds:
         raise ConfigError("trials.speeds and scheduler.enabled both set the speed: choose one")
 
@@ -369,10 +366,10 @@ class Experiment:
             self._check_children()
             self.progress.line(f"learn   no fit after trial {trial}: {exc}")
             hyper = None
-        else:
-            self.progress.line(f"learn   hyperparameters v{hyper.version}: {hyper.n_used}/{hyper.n_total} experiences, "
-                               f"fit {hyper.fit_s:.1f} s ({time.monotonic() - t0:.1f} s wall)")
-        return hyper, self.ingested()
+        ingested = self.ingested()
+        if hyper is not None:
+            self.progress.line(fit_line(hyper, ingested, time.monotonic() - t0))
+        return hyper, ingested
 
     def ingested(self) -> int:
         total = 0
@@ -381,6 +378,25 @@ class Experiment:
                 stats = decode(StoreStats, rep.payload)
                 total += sum(p.ingested for p in stats.paths if p.path_id == self.path_id)
         return total
+
+
+def fit_line(hyper: HyperMsg, ingested: int, wall_s: float) -> str:
+    """The console's account of a fit. Two different counts: the fit's (the experiences the store
+    retains for the route's nominal model after per-bin eviction, and how many of those the fit used)
+    and every experience ever ingested on the route (summary.json `experiences_total`)."""
+    model = f" of model {hyper.model}" if hyper.model else ""
+    return (f"learn   hyperparameters v{hyper.version} fitted on {hyper.n_used} of the {hyper.n_total} experiences "
+            f"retained{model}; {ingested} ingested on this route in all (experiences_total); "
+            f"fit {hyper.fit_s:.1f} s ({wall_s:.1f} s wall)")
+
+
+def trial_line(count: int, rec: TrialRecord, m: dict) -> str:
+    """The console's line for a finished trial; one that did not complete says why."""
+    outcome = "done" if rec.completed else f"NOT COMPLETED ({rec.end_reason or 'no reason given'})"
+    return (f"trial {rec.trial:>2}/{count} {outcome}: "
+            f"max lat {m['max_lateral_m']:.3f} m, rms {m['rms_lateral_m']:.3f} m, "
+            f"max head {math.degrees(m['max_heading_rad']):.1f} deg, "
+            f"{m['travel_time_s']:.1f} s, violations {m['constraint_violations']}, wall {rec.wall_s:.1f} s")
 
 
 OUTPUTS = ("summary.json", "report.html", "run.mcap", "config", "logs", "data")
@@ -402,8 +418,87 @@ def prepare_out_dir(out: FsPath, overwrite: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
 
+def _start_deployment(sc: Scenario, out: FsPath, log_level: str, progress: Progress) -> tuple[Launcher, str]:
+    """Router and services of a run on a private port; the router must listen before services start."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    # a private data dir per run: the taught route belongs to this experiment
+    paths = write_service_configs(service_configs(sc, (out / "data").resolve()), out / "config")
+    launcher = Launcher(endpoint, out / "logs")
+    try:
+        launcher.start_router(port)
+        launcher.wait_router()
+        for s in services_of(sc):
+            launcher.start_service(s, paths[s], log_level)
+    except LaunchError as exc:
+        launcher.stop()
+        raise ExperimentError(str(exc)) from None
+    except BaseException:
+        launcher.stop()
+        raise
+    progress.line(f"started router on {endpoint} and {', '.join(services_of(sc))} (logs in {out / 'logs'})")
+    return launcher, endpoint
+
+
+def _connect(endpoint: str, launcher: Launcher | None, timeout_s: float) -> zenoh.Session:
+    try:
+        return open_session(endpoint, timeout_s=timeout_s)
+    except ValueError as exc:
+        raise ExperimentError(f"--connect: {exc}") from None
+    except ConnectionError as exc:
+        dead = launcher.exited() if launcher else []
+        if dead:
+            raise ExperimentError(f"{exc}; {dead[0].name} exited:\n{dead[0].tail()}") from None
+        hint = "" if launcher else "; is a deployment running there (lbc launch SCENARIO --port PORT)?"
+        raise ExperimentError(f"{exc}{hint}") from None
+
+
+def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, hyper: HyperMsg | None,
+                   ingested: int) -> dict:
+    """One entry of summary.json `trials`."""
+    limits = (sc.constraints.lateral_m, math.radians(sc.constraints.heading_deg))
+    # experiences_total: every experience the store ever ingested on the route (evicted ones and
+    # other nominal models' included), not what the fit used: that is experiences_fit_*
+    m = trial_metrics(exp.truth_path, rec, series, *limits, experiences_total=ingested)
+    nominal, learned = d.rmse()
+    if rec.trial in exp.schedules:
+        v = np.asarray(exp.schedules[rec.trial].v_mps)
+        m.update({"schedule_version": exp.schedules[rec.trial].version, "scheduled_speed_mean_mps": float(v.mean()),
+                  "scheduled_speed_max_mps": float(v.max())})
+    m.update({"experiences_trial": len(d.observed),
+              "experiences_fit_retained": hyper.n_total if hyper else None,
+              "experiences_fit_used": hyper.n_used if hyper else None,
+              "heading_rate_residual_rmse_nominal_radps": float(nominal[2] / sc.sim.period_s),
+              "heading_rate_residual_rmse_learned_radps": float(learned[2] / sc.sim.period_s),
+              "lateral_residual_rmse_nominal_mps": float(nominal[1] / sc.sim.period_s),
+              "lateral_residual_rmse_learned_mps": float(learned[1] / sc.sim.period_s)})
+    return m
+
+
+def _run_trials(sc: Scenario, exp: Experiment, out: FsPath, summary: dict, records: list, series: list,
+                disturbance: list) -> None:
+    model_train, model_hyper = [], None     # what the store knew before the trial
+    for trial in range(1, sc.trials.count + 1):
+        rec = exp.repeat(trial, sc.trials.speed_of(trial))
+        records.append(rec)
+        hyper, ingested = exp.learn(trial)
+        if sc.scheduler.enabled and trial < sc.trials.count:
+            exp.reschedule(trial)
+        d = predict_trial(trial, exp.trial_experiences(trial), model_train, model_hyper, sc.store.v_bin_mps,
+                          sc.store.c_vertex, sc.store.c_velocity)
+        disturbance.append(d)
+        model_train, model_hyper = exp.retained(), hyper
+        s = truth_series(exp.truth_path, rec)
+        series.append(s)
+        m = _trial_summary(sc, exp, rec, s, d, hyper, ingested)
+        summary["trials"].append(m)
+        write_json_atomic(out / "summary.json", summary)  # nothing lost if a later trial fails
+        exp.progress.line(trial_line(sc.trials.count, rec, m))
+
+
 def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: str | None = None,
-                   progress_stream: TextIO = sys.stderr, log_level: str = "INFO", overwrite: bool = False) -> dict:
+                   progress_stream: TextIO = sys.stderr, log_level: str = "INFO", overwrite: bool = False,
+                   connect_timeout_s: float = 30.0) -> dict:
     """Run a whole experiment; returns the summary (also written to out_dir/summary.json)."""
     t_start = time.monotonic()
     sc = load_scenario(scenario_path)
@@ -411,66 +506,17 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
     out = FsPath(out_dir)
     prepare_out_dir(out, overwrite)
     progress = Progress(progress_stream)
-    launcher = None
-    if connect is None:
-        port = free_port()
-        endpoint = f"tcp/127.0.0.1:{port}"
-        # a private data dir per run: the taught route belongs to this experiment
-        configs = service_configs(sc, (out / "data").resolve())
-        paths = write_service_configs(configs, out / "config")
-        launcher = Launcher(endpoint, out / "logs")
-        launcher.start_router(port)
-        for s in services_of(sc):
-            launcher.start_service(s, paths[s], log_level)
-        progress.line(f"started router on {endpoint} and {', '.join(services_of(sc))} (logs in {out / 'logs'})")
-    else:
-        endpoint = connect
+    launcher, endpoint = _start_deployment(sc, out, log_level, progress) if connect is None else (None, connect)
     summary: dict[str, Any] = {"scenario": sc.name, "algorithm": sc.controller.algorithm, "trials": []}
     session = recorder = exp = None
     series, records, disturbance = [], [], []
     try:
-        try:
-            session = open_session(endpoint, timeout_s=30.0)
-        except ConnectionError as exc:
-            dead = launcher.exited() if launcher else []
-            raise ExperimentError(f"{exc}" + (f"; {dead[0].name} exited:\n{dead[0].tail()}" if dead else "")) from None
+        session = _connect(endpoint, launcher, connect_timeout_s)
         recorder = McapRecorder(out / "run.mcap", session, stereo_every=sc.localization.record_stereo_every)
         exp = Experiment(sc, session, recorder, progress, launcher)
         exp.wait_ready()
         exp.teach()
-        path = exp.truth_path
-        limits = (sc.constraints.lateral_m, math.radians(sc.constraints.heading_deg))
-        model_train, model_hyper = [], None     # what the store knew before the trial
-        for trial in range(1, sc.trials.count + 1):
-            rec = exp.repeat(trial, sc.trials.speed_of(trial))
-            records.append(rec)
-            hyper, ingested = exp.learn(trial)
-            if sc.scheduler.enabled and trial < sc.trials.count:
-                exp.reschedule(trial)
-            d = predict_trial(trial, exp.trial_experiences(trial), model_train, model_hyper, sc.store.v_bin_mps,
-                              sc.store.c_vertex, sc.store.c_velocity)
-            disturbance.append(d)
-            model_train, model_hyper = exp.retained(), hyper
-            s = truth_series(path, rec)
-            series.append(s)
-            m = trial_metrics(path, rec, s, *limits, experiences_total=ingested)
-            nominal, learned = d.rmse()
-            if trial in exp.schedules:
-                v = np.asarray(exp.schedules[trial].v_mps)
-                m.update({"schedule_version": exp.schedules[trial].version, "scheduled_speed_mean_mps": float(v.mean()),
-                          "scheduled_speed_max_mps": float(v.max())})
-            m.update({"experiences_trial": len(d.observed),
-                      "heading_rate_residual_rmse_nominal_radps": float(nominal[2] / sc.sim.period_s),
-                      "heading_rate_residual_rmse_learned_radps": float(learned[2] / sc.sim.period_s),
-                      "lateral_residual_rmse_nominal_mps": float(nominal[1] / sc.sim.period_s),
-                      "lateral_residual_rmse_learned_mps": float(learned[1] / sc.sim.period_s)})
-            summary["trials"].append(m)
-            write_json_atomic(out / "summary.json", summary)  # nothing lost if a later trial fails
-            progress.line(f"trial {trial:>2}/{sc.trials.count} {'done' if rec.completed else 'NOT COMPLETED'}: "
-                          f"max lat {m['max_lateral_m']:.3f} m, rms {m['rms_lateral_m']:.3f} m, "
-                          f"max head {math.degrees(m['max_heading_rad']):.1f} deg, "
-                          f"{m['travel_time_s']:.1f} s, violations {m['constraint_violations']}, "
-                          f"wall {rec.wall_s:.1f} s")
+        _run_trials(sc, exp, out, summary, records, series, disturbance)
     finally:
         if exp is not None:
             exp.close()
@@ -480,7 +526,8 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
             session.close()
         if launcher is not None:
             launcher.stop()
-        write_json_atomic(out / "summary.json", summary)
+        if summary["trials"]:   # an empty summary would only make the folder look used
+            write_json_atomic(out / "summary.json", summary)
     wall = time.monotonic() - t_start
     # simulated phases only (teach and repeats), so start-up, fits and the report do not blur the figure
     sim_s = exp.teach_sim_s + sum(r.truth[-1].stamp_s - r.truth[0].stamp_s for r in records if r.truth)

@@ -29,13 +29,6 @@ def hypers_of(msg: HyperMsg) -> list[SEHyper]:
 
 
 log = logging.getLogger(__name__)
-WINDOW_HOLD_STEPS = 5        # 0.5 s at 10 Hz (LocalModels.speed_bin)
-
-
-def hold_steps_for(algorithm: str) -> int:
-    """The laws that choose their own speed (C/RC) draw the window with hysteresis; the others at the
-    scheduled speed as it comes."""
-    return WINDOW_HOLD_STEPS if algorithm in ("c-lb-nmpc", "rc-lb-nmpc") else 0
 
 
 class LocalModels:

@@ -27,23 +27,20 @@ from services.controller.config import ControllerConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
-from services.controller.ilc import ILCLaw, ILCMemory
-from services.controller.laws import FLLaw, SteeringLaw
-from services.controller.local_model import LocalModels, hold_steps_for
-from services.controller.nmpc import LBNMPCLaw
-from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
+from services.controller.ilc import ILCMemory
+from services.controller.laws import SteeringLaw
+from services.controller.local_model import LocalModels
+from services.controller.registry import LawInputs, law_entry
 from services.controller.tracker import Decision, PathTracker, TrackerLimits
-
-AVAILABLE_ALGORITHMS = ("fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc")
-
 
 class ControllerService(Service):
     name = "controller"
 
     def __init__(self, cfg: ControllerConfig, node: Node):
-        if cfg.algorithm not in AVAILABLE_ALGORITHMS:
-            raise ConfigError(f"algorithm {cfg.algorithm!r} is not available in this version "
-                              f"(available: {', '.join(AVAILABLE_ALGORITHMS)})")
+        try:
+            law_entry(cfg.algorithm)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         super().__init__(node)
         self.cfg = cfg
         r = cfg.robot_name
@@ -132,17 +129,13 @@ class ControllerService(Service):
 
     def _make_law(self, path_id: str, path: Path) -> tuple[SteeringLaw, int]:
         """The steering law of the configured algorithm for a trial on `path`, and its eq. 3.16 m_ic."""
-        algo = self.cfg.algorithm
+        entry = law_entry(self.cfg.algorithm)
         self.ilc, self.models = None, None
-        if algo == "fl":
-            return FLLaw(self.gains), 0
-        if algo == "ilc":
+        if entry.learns == "ilc":
             if not self.cfg.data_dir:
                 raise ValueError("ILC keeps its feedforward per route on disk: set data_dir")
             self.ilc = ILCMemory.load(FsPath(self.cfg.data_dir) / "ilc", path_id, len(path))
-            return ILCLaw(self.gains, self.ilc), self.cfg.ilc.ic_vertices
-        settings = self.cfg.nmpc
-        if self.cache is not None:
+        if entry.learns == "gp" and self.cache is not None:
             cache = self.cache
 
             def window(vertex: int, speed: float):
@@ -150,14 +143,11 @@ class ControllerService(Service):
                 return data.A, data.G
             # learning off: the same controller on its nominal model only
             self.models = LocalModels(window, lambda: cache.hyper if self.learning else None,
-                                      settings.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps,
-                                      hold_steps=hold_steps_for(algo))
-        model_for = self.models.model_for if self.models else (lambda ctx: None)
-        if algo == "mm-lb-nmpc":
-            return MMLBNMPCLaw(settings, self.cfg.period_s, model_for), 0
-        if algo in ("c-lb-nmpc", "rc-lb-nmpc"):
-            return RCLBNMPCLaw(settings, self.cfg.period_s, model_for, alpha=0.0 if algo == "c-lb-nmpc" else None), 0
-        return LBNMPCLaw(settings, self.cfg.period_s, model_for), 0
+                                      self.cfg.nmpc.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps,
+                                      hold_steps=entry.window_hold_steps)
+        law = entry.build(LawInputs(self.gains, self.cfg.nmpc, self.cfg.period_s,
+                                    self.models.model_for if self.models else (lambda ctx: None), self.ilc))
+        return law, self.cfg.ilc.ic_vertices if entry.learns == "ilc" else 0
 
     def _corridor(self, path_id: str, path: Path) -> Corridor:
         c = self.cfg.corridor
