@@ -309,9 +309,29 @@ def parse_scenario(data: dict, where: str = "<scenario>") -> Scenario:
     params = robot_from_preset(preset, robot_table, "robot")
     data["robot"] = {"preset": preset, "name": name, "params": to_dict(params)}
     try:
-        return from_dict(Scenario, data)
+        sc = from_dict(Scenario, data)
     except TypeCheckError as exc:
         raise ConfigError(f"{where}: {exc}") from None
+    written = {f"{table}.{k}" for table in ("trials", "scheduler") for k in data.get(table) or {}}
+    _check_speed_limits(sc, written, "v_max_mps" in robot_table, where)
+    return sc
+
+
+def _check_speed_limits(sc: Scenario, written: set[str], limit_overridden: bool, where: str) -> None:
+    """Speeds the robot cannot drive would only make every trial time out: refuse them here, each
+    when written or used. scheduler.v_max is a ceiling, clamped to the robot's limit by the deployment
+    (DESIGN.md's own example sets 2 m/s on a husky), so it stays accepted."""
+    limit = sc.robot.params.v_max_mps
+    sched = sc.scheduler
+    used_speed = not sched.enabled and not sc.trials.speeds
+    asked = [(f"trials.speeds[{i}]", v) for i, v in enumerate(sc.trials.speeds or [])]
+    asked += [("trials.speed", sc.trials.speed)] if used_speed or "trials.speed" in written else []
+    asked += [("scheduler.v_init", sched.v_init)] if sched.enabled or "scheduler.v_init" in written else []
+    for name, v in asked:
+        if v > limit:
+            origin = "set in [robot]" if limit_overridden else f"of the {sc.robot.preset} preset"
+            raise ConfigError(f"{where}: {name} = {v:g} m/s exceeds the robot's speed limit, v_max_mps = "
+                              f"{limit:g} m/s ({origin})")
 
 
 def load_scenario(path: str | FsPath) -> Scenario:
