@@ -6,9 +6,11 @@ slot; nodes do their work on their own thread.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import queue
+import re
 import signal
 import threading
 import time
@@ -24,6 +26,10 @@ M = TypeVar("M")
 log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+SLOW_CONNECT_WARN_S = 5.0      # a router that takes longer than this to answer is worth a warning
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+(?::\d+)?\.?")
+_JSON5_MESSAGE = re.compile(r'Json5Err\(Message \{ msg: "(.*?)", location.*\}\)', re.S)
 _zenoh_log_started = False
 
 
@@ -42,33 +48,53 @@ def zenoh_config(mode: str, *, connect: Iterable[str] = (), listen: Iterable[str
     return conf
 
 
+def zenoh_error(exc: BaseException | str) -> str:
+    """Zenoh's error text without the Rust source locations it appends (`at .../tcp.rs:61.`), which
+    mean nothing to a user; a JSON5 configuration error is reduced to its message."""
+    text = _RUST_LOCATION.sub("", str(exc))
+    m = _JSON5_MESSAGE.search(text)
+    return (m.group(1) if m else text).strip()
+
+
 def open_session(endpoint: str = DEFAULT_ENDPOINT, mode: str = "client", stop: threading.Event | None = None,
                  timeout_s: float | None = None) -> zenoh.Session:
     """Connect to the router, waiting for it if it is still starting.
 
     The wait happens in 1 s attempts so that SIGTERM/Ctrl-C (and `stop`) are honoured meanwhile: a
-    single open() with an infinite timeout would block signal handling forever. Raises ConnectionError
-    after `timeout_s` (None: keep trying) or when `stop` is set.
+    single open() with an infinite timeout would block signal handling forever. A router started a
+    moment ago is the normal case, so waiting is logged at INFO and only becomes a warning after
+    SLOW_CONNECT_WARN_S. Raises ValueError for a malformed endpoint, ConnectionError after `timeout_s`
+    (None: keep trying) or when `stop` is set.
     """
     global _zenoh_log_started
     if not _zenoh_log_started:
         zenoh.init_log_from_env_or("error")
         _zenoh_log_started = True
     listen = ["tcp/127.0.0.1:0"] if mode == "peer" else []
-    last_error = None
-    deadline = None if timeout_s is None else time.monotonic() + timeout_s
-    warned = False
+
+    def config() -> zenoh.Config:
+        return zenoh_config(mode, connect=[endpoint], listen=listen, connect_timeout_ms=1000)
+    try:
+        config()   # a malformed endpoint never starts working: say so at once
+    except zenoh.ZError as exc:
+        raise ValueError(f"invalid Zenoh endpoint {endpoint!r}: {zenoh_error(exc)}") from None
+    t0 = time.monotonic()
+    last_error, informed, warned = "", False, False
     while True:
         if stop is not None and stop.is_set():
             raise ConnectionError(f"stopped while connecting to {endpoint}")
         try:
-            return zenoh.open(zenoh_config(mode, connect=[endpoint], listen=listen, connect_timeout_ms=1000))
+            return zenoh.open(config())
         except zenoh.ZError as exc:
-            last_error = str(exc)
-        if deadline is not None and time.monotonic() > deadline:
+            last_error = zenoh_error(exc)
+        waited = time.monotonic() - t0
+        if timeout_s is not None and waited > timeout_s:
             raise ConnectionError(f"no Zenoh router at {endpoint} within {timeout_s:.0f} s ({last_error})")
-        if not warned:
-            log.warning("waiting for a Zenoh router at %s ...", endpoint)
+        if not informed:
+            log.info("waiting for a Zenoh router at %s ...", endpoint)
+            informed = True
+        if not warned and waited >= SLOW_CONNECT_WARN_S:
+            log.warning("still no Zenoh router at %s after %.0f s; is it running?", endpoint, waited)
             warned = True
 
 
@@ -282,7 +308,14 @@ def install_stop_handlers(stop: threading.Event) -> None:
     signal.signal(signal.SIGINT, handler)
 
 
+def add_log_level_argument(parser: argparse.ArgumentParser, default: str = "INFO") -> None:
+    """--log-level for every entry point; a misspelt level is an error, not silently INFO."""
+    parser.add_argument("--log-level", default=default, type=str.upper, choices=LOG_LEVELS, metavar="LEVEL",
+                        help=f"one of {', '.join(LOG_LEVELS)} (default {default})")
+
+
 def setup_logging(service: str, level: str = "INFO") -> logging.Logger:
-    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO),
+    # force: the `lbc` command line may already have configured logging for itself
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), force=True,
                         format=f"%(asctime)s %(levelname)s {service} %(name)s: %(message)s")
     return logging.getLogger(service)

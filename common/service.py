@@ -17,7 +17,7 @@ from typing import Any, Callable, TypeVar
 import zenoh
 
 from common import keys
-from common.bus import DEFAULT_ENDPOINT, Node, install_stop_handlers, setup_logging
+from common.bus import DEFAULT_ENDPOINT, Node, add_log_level_argument, install_stop_handlers, setup_logging
 from common.codec import DecodeError, decode, encode
 from common.config import ConfigError, load_config
 from common.lifecycle import die_with_parent
@@ -119,7 +119,7 @@ def service_main(name: str, config_cls: type[C], build: Callable[[C, Node], Serv
     parser = argparse.ArgumentParser(prog=f"python -m services.{name}", description=f"lbc {name} service")
     parser.add_argument("--config", required=True, help="service configuration (TOML)")
     parser.add_argument("--connect", default=DEFAULT_ENDPOINT, help="Zenoh router endpoint")
-    parser.add_argument("--log-level", default="INFO")
+    add_log_level_argument(parser)
     args = parser.parse_args(argv)
     die_with_parent()
     log = setup_logging(name, args.log_level)
@@ -135,6 +135,9 @@ def service_main(name: str, config_cls: type[C], build: Callable[[C, Node], Serv
     except ConnectionError as exc:
         log.info("%s stopped before connecting: %s", name, exc)
         return 0
+    except ValueError as exc:   # a malformed --connect endpoint
+        log.error("cannot connect: %s", exc)
+        return 2
     service = None
     try:
         try:

@@ -9,15 +9,35 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from common.bus import AliveWatcher
 from common.lifecycle import PARENT_ENV
+from deploy.router import READY_LINE
 
 log = logging.getLogger(__name__)
+
+
+class LaunchError(RuntimeError):
+    """A child did not come up; the message says which and why (the last lines of its log)."""
+
+
+def port_in_use(port: int, host: str = "127.0.0.1") -> bool:
+    """Whether something already holds the TCP port. With SO_REUSEADDR, so that a port left in
+    TIME_WAIT by a router that just stopped does not count as taken; a listener still does."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError:
+            return True
+    return False
 
 
 @dataclass
@@ -25,13 +45,18 @@ class Child:
     name: str
     proc: subprocess.Popen
     log_path: Path
+    log_offset: int = 0     # where this child's output starts: log files are appended to across runs
 
-    def tail(self, lines: int = 15) -> str:
+    def output(self) -> str:
         try:
-            text = self.log_path.read_text(errors="replace").splitlines()
+            with open(self.log_path, "rb") as fh:
+                fh.seek(self.log_offset)
+                return fh.read().decode(errors="replace")
         except OSError:
             return ""
-        return "\n".join(text[-lines:])
+
+    def tail(self, lines: int = 15) -> str:
+        return "\n".join(self.output().splitlines()[-lines:])
 
 
 class Launcher:
@@ -49,9 +74,10 @@ class Launcher:
         for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             env.setdefault(var, "1")
         with open(log_path, "ab") as fh:
+            offset = fh.tell()
             proc = subprocess.Popen([sys.executable, *args], stdout=fh, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, env=env)
-        child = Child(name, proc, log_path)
+        child = Child(name, proc, log_path, offset)
         self.children.append(child)
         log.debug("started %s (pid %d): %s", name, proc.pid, " ".join(args))
         return child
@@ -62,6 +88,40 @@ class Launcher:
     def start_service(self, service: str, config_path: str | Path, log_level: str = "INFO") -> Child:
         return self._spawn(service, ["-m", f"services.{service}", "--config", str(config_path),
                                      "--connect", self.endpoint, "--log-level", log_level])
+
+    def wait_router(self, timeout_s: float = 15.0) -> None:
+        """Return once the router listens; raise LaunchError if it exits first (port taken, bad
+        address) or stays silent, so that nothing claims a deployment that is not there."""
+        router = next(c for c in self.children if c.name == "router")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if router.proc.poll() is not None:
+                raise LaunchError(f"the router exited ({router.proc.returncode}):\n{router.tail()}")
+            if READY_LINE in router.output():
+                return
+            if time.monotonic() > deadline:
+                raise LaunchError(f"the router did not listen within {timeout_s:.0f} s:\n{router.tail()}")
+            time.sleep(0.02)  # its log file is the only signal a child process gives
+
+    def wait_alive(self, session, expected: dict[str, str], timeout_s: float = 60.0,
+                   stop: threading.Event | None = None) -> bool:
+        """Wait until every service in `expected` (name -> liveliness key) has declared itself alive.
+        Raises LaunchError when a child exits or time runs out; returns False if `stop` was set."""
+        watcher = AliveWatcher(session, "lbc/alive/**")
+        deadline = time.monotonic() + timeout_s
+        try:
+            while not watcher.wait_for(lambda alive: set(expected.values()) <= alive, 0.2):
+                dead = self.exited()
+                if dead:
+                    raise LaunchError(f"{dead[0].name} exited ({dead[0].proc.returncode}):\n{dead[0].tail()}")
+                if stop is not None and stop.is_set():
+                    return False
+                if time.monotonic() > deadline:
+                    missing = [name for name, key in expected.items() if not watcher.is_alive(key)]
+                    raise LaunchError(f"not up within {timeout_s:.0f} s: {', '.join(missing)}")
+            return True
+        finally:
+            watcher.close()
 
     def exited(self) -> list[Child]:
         return [c for c in self.children if c.proc.poll() is not None]

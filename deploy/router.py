@@ -9,8 +9,10 @@ import threading
 
 import zenoh
 
-from common.bus import install_stop_handlers, setup_logging, zenoh_config
+from common.bus import add_log_level_argument, install_stop_handlers, setup_logging, zenoh_config, zenoh_error
 from common.lifecycle import die_with_parent
+
+READY_LINE = "router listening on"   # the launcher waits for this line in the router's log
 
 
 def free_port() -> int:
@@ -25,12 +27,15 @@ def open_router(port: int, host: str = "127.0.0.1") -> zenoh.Session:
     return zenoh.open(zenoh_config("router", listen=[f"tcp/{host}:{port}"]))
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="lbc router", description="run the local Zenoh router")
-    parser.add_argument("--port", type=int, default=7447)
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The router's options, shared by `python -m deploy.router` and `lbc router`."""
+    parser.add_argument("--port", type=int, default=7447, help="TCP port to listen on (default 7447)")
     parser.add_argument("--host", default="127.0.0.1", help="interface to listen on (0.0.0.0 for a fleet)")
-    parser.add_argument("--log-level", default="INFO")
-    args = parser.parse_args(argv)
+    add_log_level_argument(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Listen until SIGTERM/SIGINT; says where it listens, or why it cannot."""
     die_with_parent()
     log = setup_logging("router", args.log_level)
     stop = threading.Event()
@@ -38,9 +43,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         session = open_router(args.port, args.host)
     except zenoh.ZError as exc:
-        log.error("cannot listen on tcp/%s:%d: %s", args.host, args.port, exc)
+        log.error("cannot listen on tcp/%s:%d: %s", args.host, args.port, zenoh_error(exc))
         return 1
-    log.info("router listening on tcp/%s:%d (zid %s)", args.host, args.port, session.zid())
+    log.info(READY_LINE + " tcp/%s:%d (zid %s)", args.host, args.port, session.zid())
     try:
         stop.wait()
     finally:
@@ -48,6 +53,12 @@ def main(argv: list[str] | None = None) -> int:
         log.info("router stopped")
         logging.shutdown()
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="lbc router", description="run the local Zenoh router")
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
 
 
 if __name__ == "__main__":

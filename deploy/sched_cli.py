@@ -14,7 +14,7 @@ from common.messages import SpeedSchedule
 def _show(args) -> int:
     try:
         session = open_session(args.connect, timeout_s=10.0)
-    except ConnectionError as exc:
+    except (ConnectionError, ValueError) as exc:   # no router there / a malformed endpoint
         print(f"lbc sched: {exc}", file=sys.stderr)
         return 2
     try:
@@ -44,7 +44,9 @@ def _show(args) -> int:
 
 
 def add_parser(sub) -> None:
-    sched = sub.add_parser("sched", help="inspect the speed scheduler").add_subparsers(dest="sub", required=True)
+    group = sub.add_parser("sched", help="inspect the speed scheduler")
+    group.set_defaults(func=lambda _args: group.print_help() or 0)   # `lbc sched` alone: its help
+    sched = group.add_subparsers(dest="sub", metavar="SUBCOMMAND")
     show = sched.add_parser("show", help="the latest speed schedule of a route")
     show.add_argument("--path", required=True)
     show.add_argument("--json", action="store_true")

@@ -153,7 +153,9 @@ def _import(session, args, endpoint: str) -> int:
 
 
 def add_parser(sub) -> None:
-    store = sub.add_parser("store", help="inspect and manage the experience store").add_subparsers(dest="sub", required=True)
+    group = sub.add_parser("store", help="inspect and manage the experience store")
+    group.set_defaults(func=lambda _args: group.print_help() or 0)   # `lbc store` alone: its help
+    store = group.add_subparsers(dest="sub", metavar="SUBCOMMAND")
 
     def common(p):
         p.add_argument("--connect", default=DEFAULT_ENDPOINT, help="Zenoh router of the deployment")
@@ -183,7 +185,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     try:
         session = open_session(args.connect, timeout_s=10.0)
-    except ConnectionError as exc:
+    except (ConnectionError, ValueError) as exc:   # no router there / a malformed endpoint
         print(f"lbc store: {exc}", file=sys.stderr)
         return 2
     try:
