@@ -17,8 +17,11 @@ Measured:
 - ingest: every experience goes through `ExperienceOutbox.add`, flushed every `--batch` experiences;
   `ingest_per_s` = N / (time from the first add until the last acknowledgement, i.e. until every
   experience is durably committed). `resend_after_s` is set high (`--resend-after`) so the figure is
-  the store's throughput, not re-sends under backlog; `resent` counts any that happened anyway.
-  `retained` / `ingested` come from `lbc/store/stats`.
+  the store's throughput, not re-sends under backlog; `resent` counts any that happened anyway. At most
+  `--max-in-flight` experiences are unacknowledged at a time (the producer waits for acknowledgements
+  beyond that; the default does not engage below 50000 experiences). `ingest_store_cpu_us`: CPU time
+  of the gp_store process per experience over the same span. `retained` / `ingested` come from
+  `lbc/store/stats`.
 - window queries: `--queries` `session.get` on `lbc/store/<path>/window?vertex=i&speed=v` at a
   uniformly random populated (vertex, speed bin), speed uniform inside the bin, each timed until the
   reply stream has ended and the reply is decoded into an ExperienceWindow (what a caller waits);
@@ -35,6 +38,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import statistics
 import tempfile
 import threading
@@ -74,8 +78,8 @@ class Workload:
     stamp_s: list[float]
     vertex: list[int]
     v_cmd: list[float]
-    a: list[list[float]]
-    g: list[list[float]]
+    a: np.ndarray          # (n, 9): arrays, not lists of lists, so that --n 1000000 fits in memory
+    g: np.ndarray          # (n, 3)
     trials: int
 
     def __len__(self) -> int:
@@ -86,7 +90,8 @@ def make_workload(n: int, n_vertices: int, seed: int) -> Workload:
     """N experiences from repeated trials over the route (see the module docstring)."""
     rng = np.random.default_rng(seed)
     length_m = (n_vertices - 1) * SPACING_M
-    trial, stamp, vertex, v_cmd, a, g = [], [], [], [], [], []
+    trial, stamp, vertex, v_cmd = [], [], [], []
+    a, g = np.empty((n, 9)), np.empty((n, 3))
     trials, t_global = 0, 0.0
     speeds: list[float] = []
     while len(vertex) < n:
@@ -103,11 +108,11 @@ def make_workload(n: int, n_vertices: int, seed: int) -> Workload:
             i = min(int(s / SPACING_M), n_vertices - 1)
             # a = (x, y, theta relative to the vertex, v_act, w_act, v_cmd, w_cmd at k-1, at k-2): eq. 5.15
             off = (s - i * SPACING_M, rng.normal(0.0, 0.02), rng.normal(0.0, 0.01))
-            a.append([*off, v_act, w_act, v, w, v_prev, w_prev])
+            a[len(vertex)] = (*off, v_act, w_act, v, w, v_prev, w_prev)
             # g: body-frame x, y, heading residuals (slip, a side slope over part of the route, noise)
-            g.append([-slip * v * DT_S + rng.normal(0.0, 1e-3),
-                      0.004 * math.sin(s / 20.0) * v + rng.normal(0.0, 1e-3),
-                      rng.normal(0.0, 2e-3)])
+            g[len(vertex)] = (-slip * v * DT_S + rng.normal(0.0, 1e-3),
+                              0.004 * math.sin(s / 20.0) * v + rng.normal(0.0, 1e-3),
+                              rng.normal(0.0, 2e-3))
             trial.append(trials)
             stamp.append(t_global + t)
             vertex.append(i)
@@ -187,8 +192,10 @@ def percentile(xs: list[float], q: int) -> float:
 
 
 # --- measurement ------------------------------------------------------------------------------------
-def ingest(node: Node, w: Workload, batch: int, resend_after_s: float, timeout_s: float) -> dict:
-    outbox = ExperienceOutbox(node, ROBOT, resend_after_s=resend_after_s, max_batch=max(batch, 1))
+def ingest(node: Node, w: Workload, batch: int, resend_after_s: float, timeout_s: float,
+           max_in_flight: int, store_pid: int) -> dict:
+    outbox = ExperienceOutbox(node, ROBOT, resend_after_s=resend_after_s, max_batch=max(batch, 1),
+                              max_pending=max(max_in_flight + batch, 200_000))
     n, sent = len(w), [0]
     flush = outbox.flush
 
@@ -197,24 +204,43 @@ def ingest(node: Node, w: Workload, batch: int, resend_after_s: float, timeout_s
         sent[0] += k
         return k
     outbox.flush = counting_flush
+    deadline = time.monotonic() + timeout_s
+    cpu0 = cpu_s(store_pid)
     t0 = time.perf_counter()
     for k in range(n):
         outbox.add(stamp_s=w.stamp_s[k], trial=w.trial[k], path_id=PATH_ID, vertex=w.vertex[k],
-                   v_cmd_mps=w.v_cmd[k], a=w.a[k], g=w.g[k])
+                   v_cmd_mps=w.v_cmd[k], a=w.a[k].tolist(), g=w.g[k].tolist())
         if (k + 1) % batch == 0:
             outbox.flush()
+            # a producer far ahead of the store only queues (and the outbox would drop beyond its cap)
+            while outbox.pending >= max_in_flight:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"{outbox.pending} experiences not acknowledged after {timeout_s:.0f} s")
+                time.sleep(0.001)
+                outbox.flush()
     outbox.flush()
     published_s = time.perf_counter() - t0
-    deadline = time.monotonic() + timeout_s
     while not outbox.wait_acked(1.0):   # 1 s slices: SIGTERM/Ctrl-C stays responsive
         if time.monotonic() > deadline:
             raise RuntimeError(f"{outbox.pending} of {n} experiences not acknowledged after {timeout_s:.0f} s")
     elapsed = time.perf_counter() - t0
+    store_cpu_s = cpu_s(store_pid) - cpu0
     resent = sent[0] - n
     if outbox.rejected:
         raise RuntimeError(f"the store rejected {outbox.rejected} experiences (see its log)")
+    if outbox.dropped or outbox.acked != n:
+        raise RuntimeError(f"{outbox.acked} of {n} experiences acknowledged, {outbox.dropped} dropped by the outbox")
     return {"ingest_s": elapsed, "publish_s": published_s, "acked": outbox.acked, "resent": resent,
-            "source": outbox.source}
+            "source": outbox.source, "store_cpu_s": store_cpu_s}
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU time of a process so far (less disturbed by a busy machine than wall time)."""
+    try:
+        fields = FsPath(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return float("nan")
 
 
 def window_query(session: zenoh.Session, vertex: int, speed: float) -> tuple[float, ExperienceWindow | None, str]:
@@ -308,7 +334,8 @@ def run_bench(args: argparse.Namespace) -> dict:
 
             log.info("ingesting %d experiences (%d trials, %d bins) in batches of %d",
                      len(work), work.trials, len(bins), args.batch)
-            ing = ingest(node, work, args.batch, args.resend_after, timeout_s=max(120.0, args.n / 100.0))
+            ing = ingest(node, work, args.batch, args.resend_after, timeout_s=max(120.0, args.n / 100.0),
+                         max_in_flight=args.max_in_flight, store_pid=store_pid)
             log.info("ingested in %.2f s (%.0f /s)", ing["ingest_s"], args.n / ing["ingest_s"])
             stats = query_one(node.session, keys.store_stats(), StoreStats, timeout_s=QUERY_TIMEOUT_S)
             path_stats = next((p for p in stats.paths if p.path_id == PATH_ID), None)
@@ -332,9 +359,9 @@ def run_bench(args: argparse.Namespace) -> dict:
 
     return {"n": args.n, "ingest_per_s": round(args.n / ing["ingest_s"], 1), **q,
             "rss_mb": round(mem.get("VmRSS", float("nan")), 2), "rss_peak_mb": round(mem.get("VmHWM", float("nan")), 2),
-            "rss_idle_mb": round(rss_idle, 2), "rss_zenoh_shm_mb": round(shm_mb, 2),
-            "db_mb": round(db_mb, 3),
+            "rss_idle_mb": round(rss_idle, 2), "rss_zenoh_shm_mb": round(shm_mb, 2), "db_mb": round(db_mb, 3),
             "ingest_s": round(ing["ingest_s"], 4), "publish_s": round(ing["publish_s"], 4),
+            "ingest_store_cpu_us": round(ing["store_cpu_s"] / args.n * 1e6, 2),
             "ingested": path_stats.ingested, "retained": path_stats.retained, "bins": path_stats.bins,
             "acked": ing["acked"], "resent": ing["resent"], "batch": args.batch, "trials": work.trials,
             "vertices": args.vertices, "v_bin_mps": bins_cfg.v_bin_mps, "c_bin": bins_cfg.c_bin,
@@ -349,14 +376,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--vertices", type=int, default=1000, help="vertices of the taught route (0.25 m apart)")
     parser.add_argument("--batch", type=int, default=100, help="experiences per outbox flush")
+    parser.add_argument("--max-in-flight", type=int, default=50_000,
+                        help="unacknowledged experiences at most before the producer waits")
     parser.add_argument("--resend-after", type=float, default=60.0,
                         help="the outbox's resend_after_s (high: measure the store, not re-sends)")
     parser.add_argument("--log-level", default="INFO")
     parser.add_argument("--service-log-level", default="WARNING")
     args = parser.parse_args(argv)
     setup_logging("bench", args.log_level)
-    if args.n < 1 or args.queries < 1 or args.warmup < 0 or args.batch < 1 or args.vertices < 11:
-        parser.error("--n, --queries and --batch must be >= 1, --warmup >= 0 and --vertices >= 11")
+    if args.n < 1 or args.queries < 1 or args.warmup < 0 or args.batch < 1 or args.vertices < 11 \
+            or args.max_in_flight < args.batch:
+        parser.error("--n, --queries and --batch must be >= 1, --warmup >= 0, --vertices >= 11 and "
+                     "--max-in-flight >= --batch")
 
     return run_and_print(lambda: run_bench(args))
 

@@ -19,7 +19,9 @@ import json
 import logging
 import math
 import sqlite3
+import struct
 import threading
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path as FsPath
 
@@ -28,6 +30,7 @@ import numpy as np
 from common.messages import A_DIM, G_DIM, Experience
 
 SCHEMA_VERSION = 3
+_PACK_A, _PACK_G = struct.Struct(f"<{A_DIM}d"), struct.Struct(f"<{G_DIM}d")
 log = logging.getLogger(__name__)
 
 _SCHEMA = f"""
@@ -84,6 +87,9 @@ class ExperienceDB:
         self._db.executescript(_SCHEMA)
         self._rlock = threading.Lock()
         self._rdb = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        # route -> nominal model of its newest experience, kept by `ingest` (the file's one writer): every
+        # window query without a model needs it, and SQLite finds it only by sorting the route's rows
+        self._newest_model: dict[str, str] = {}
         row = self._db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
         if row is None:
             self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
@@ -125,21 +131,22 @@ class ExperienceDB:
         if not experiences:
             return []
         p = self.policy
+        pack_a, pack_g = _PACK_A.pack, _PACK_G.pack   # the layout np.frombuffer(..., "<f8") reads back
         rows = [(e.path_id, e.vertex, p.speed_bin(e.v_cmd_mps), e.robot, e.trial, source, e.seq, e.stamp_s,
-                 e.v_cmd_mps, np.asarray(e.a, dtype="<f8").tobytes(), np.asarray(e.g, dtype="<f8").tobytes(), e.model)
-                for e in experiences]
+                 e.v_cmd_mps, pack_a(*e.a), pack_g(*e.g), e.model) for e in experiences]
         with self._lock:
             cur = self._db.cursor()
             cur.execute("BEGIN IMMEDIATE")
             try:
-                new_per_path: dict[str, int] = {}
+                new = []
                 for r in rows:
                     cur.execute("INSERT OR IGNORE INTO seen VALUES (?, ?)", (source, r[6]))
-                    if cur.rowcount == 0:
-                        continue  # a re-send of something already stored (and perhaps since evicted)
-                    cur.execute("INSERT INTO experiences (path_id, vertex, speed_bin, robot, trial, source, seq, "
-                                "stamp_s, v_cmd_mps, a, g, model) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)", r)
-                    new_per_path[r[0]] = new_per_path.get(r[0], 0) + 1
+                    if cur.rowcount:   # else a re-send of something already stored (and perhaps since evicted)
+                        new.append(r)
+                cur.executemany("INSERT INTO experiences (path_id, vertex, speed_bin, robot, trial, source, seq, "
+                                "stamp_s, v_cmd_mps, a, g, model) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)", new)
+                new_per_path = Counter(r[0] for r in new)
+                newest = {r[0]: r[11] for r in new}
                 cur.executemany("INSERT INTO ingested VALUES (?, ?) ON CONFLICT(path_id) "
                                 "DO UPDATE SET total = total + excluded.total", list(new_per_path.items()))
                 for path_id, vertex, speed_bin, model in {(r[0], r[1], r[2], r[11]) for r in rows}:
@@ -151,6 +158,7 @@ class ExperienceDB:
             except BaseException:
                 cur.execute("ROLLBACK")
                 raise
+            self._newest_model.update(newest)   # eviction keeps each bin's newest (c_bin >= 1)
         return [e.seq for e in experiences]
 
     def save_hyper(self, path_id: str, body: dict, stamp_s: float) -> int:
@@ -193,10 +201,16 @@ class ExperienceDB:
 
     def current_model(self, path_id: str) -> str:
         """The nominal model of a route's newest experience ("" without any)."""
-        with self._rlock:
-            row = self._rdb.execute("SELECT model FROM experiences WHERE path_id=? ORDER BY id DESC LIMIT 1",
-                                    (path_id,)).fetchone()
-        return row[0] if row else ""
+        model = self._newest_model.get(path_id)
+        if model is None:   # first ask for this route since the file was opened
+            with self._rlock:
+                row = self._rdb.execute("SELECT model FROM experiences WHERE id = (SELECT MAX(id) FROM experiences "
+                                        "WHERE path_id=?)", (path_id,)).fetchone()
+            if row is None:
+                return ""   # not cached: any name may be asked for, and the route's first ingest sets it
+            # setdefault: an ingest that committed after this read has already put the newer model there
+            model = self._newest_model.setdefault(path_id, row[0])
+        return model
 
     def count(self, path_id: str, model: str) -> int:
         """Retained experiences of a route and nominal model."""
