@@ -1,13 +1,11 @@
 """The disturbance model the NMPC uses at each step: a GP on the local window of experiences around
 the middle of its horizon (thesis 5.3.2), with the store's latest hyperparameters.
 
-A window's GP (three Cholesky factorizations, 0.4-2 ms for 180 experiences) is built once and reused
-while the robot stays in it. The node builds the next step's window on its own thread once the command
-is out (`prepare`), so entering a new window does not delay a command. (Building it on a background
-thread was tried and made the loop slower: Python threads contend for the interpreter.) With no
-hyperparameters or no experiences, or if a
-window's GP cannot be built, there is no model and the controller runs on the nominal unicycle, which
-is exactly the thesis's first trial.
+A window's GP (three Cholesky factorizations) is built once and reused while the robot stays in it.
+The node builds the next step's window on its own thread once the command is out (`prepare`), so
+entering a new window does not delay a command (not on another thread: Python threads contend for the
+interpreter). With no hyperparameters or no experiences, or if a window's GP cannot be built, there is
+no model and the controller runs on the nominal unicycle, which is exactly the thesis's first trial.
 """
 from __future__ import annotations
 
@@ -61,11 +59,9 @@ class LocalModels:
         """The speed bin the window is drawn at. With `hold_steps`, it follows the speed with hysteresis:
         a jump of two bins or more moves it at once, a neighbouring bin only once the speed has stayed
         there for `hold_steps` calls. The window spans the bins on either side of its own, so the speed
-        still has experience around it while the window holds. For a law that chooses its own speed
-        (RC-LB-NMPC): drawn straight at the commanded speed, a speed at a bin edge flips the window
-        between two datasets every step; one of them knows the place at lower speeds and allows more
-        speed, the other not, and the plan chattered with them (0.70 / 0.85 m/s each step in a turn,
-        once leaving the heading corridor)."""
+        still has experience around it while the window holds. A law that chooses its own speed needs
+        it: drawn straight at the commanded speed, a speed at a bin edge would flip the window between
+        two datasets every step, and with them the speed the plan allows."""
         b = int(np.floor(speed / self.v_bin))
         if self.hold_steps <= 0 or self._bin is None or abs(b - self._bin) >= 2:
             self._bin, self._away = b, 0
@@ -98,7 +94,7 @@ class LocalModels:
     def prepare(self, path, s_m: float, v_mps: float) -> None:
         """Build, between control steps, the GP of the window the next step will most likely ask for
         (where the robot will be after this command, at this speed; the speed bin as it stands): a new
-        window's GP (1-2 ms) then no longer delays the command of the step that enters it. If the next
+        window's GP then no longer delays the command of the step that enters it. If the next
         step asks for another window after all, it builds that one itself, as without this call."""
         h = self.hyper()
         if h is None:

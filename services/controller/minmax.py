@@ -5,8 +5,7 @@
 The thesis iterates Gauss-Newton on whichever sequence is worst at the current iterate, with a damped
 step (beta, eq. 6.9) and a convergence test (alpha). At the optimum of a min-max problem several
 sequences are usually worst together; a step computed for one of them raises another, and that
-iteration stalls at the kink well above the optimum (re-solved by IPOPT: 66 % above it on a test
-problem with wide 3-sigma bounds, up to 1.3 % on the bench's). Here every iteration linearizes all
+iteration stalls at the kink well above the optimum. Here every iteration linearizes all
 eight sequences and takes the step of
 
     minimize_{d, t}  t + 1/2 d' H d     s.t.  c_l + g_l' d <= t  (l = 1..8),   lo <= d <= hi

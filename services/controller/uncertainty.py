@@ -52,17 +52,11 @@ class DisturbanceVariance:
                + np.outer(np.abs(A[:, 6]), self.prior.per_radps))
         if self.gp is None:
             return np.zeros((len(A), 3)), std ** 2 + self.floor
-        # what experience has taught, as the share of the a-priori variance it leaves (the GP's posterior
-        # over its prior sigma_f^2: ~0 next to repeated experiences, 1 far from them), applied to the
-        # a-priori variance at these commands. The GP's own sigma_f^2 is one number for all inputs, so far
-        # from the data it would claim the same uncertainty when creeping as at full speed, and a law that
-        # slows down to be certain would find no speed that helps where it has not driven yet.
-        # Where the window's experiences lie close to the query, the GP's own posterior variance counts
-        # too: a disturbance the data show to be small (side slip on a flat floor, whose residuals are
-        # only localization jitter) gets a GP with sigma_f far below its noise, whose share stays ~1
-        # however much experience there is; the share alone kept the whole a-priori variance there for
-        # ever (RC-LB-NMPC never sped up in the turns of thesis exp. 1). Away from the experiences the
-        # small sigma_f, fitted where the robot did drive, claims nothing: the share rule holds there.
+        # the share of its prior sigma_f^2 the GP's posterior keeps (~0 next to repeated experiences, 1
+        # far from them), applied to the a-priori variance at these commands: sigma_f^2 alone is one number
+        # for all inputs and would claim the same uncertainty creeping as at full speed. Near the data the
+        # posterior variance itself counts where smaller: a disturbance the data show to be small (side
+        # slip on a flat floor) gets sigma_f below its noise, whose share stays ~1 however much is known.
         sf2 = np.array([h.signal_std ** 2 for h in self.gp.hypers])
         mean, latent, near = self.gp.predict(A, coverage=True)
         prior = std ** 2
