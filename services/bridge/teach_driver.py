@@ -7,10 +7,22 @@ robot really drove is what gets taught.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from common import se2
+
+
+class _Arc(NamedTuple):
+    """The tangent arc that rounds one corner: it leaves the incoming leg at `start` heading along
+    `d_in`, turns by `turn` radians (positive = left) on a circle of `radius`, and joins the outgoing
+    leg at `end`."""
+    start: np.ndarray
+    end: np.ndarray
+    radius: float
+    turn: float
+    d_in: np.ndarray
 
 
 def smooth_waypoints(waypoints, corner_radius_m: float, loop: bool, step_m: float = 0.05) -> np.ndarray:
@@ -19,6 +31,27 @@ def smooth_waypoints(waypoints, corner_radius_m: float, loop: bool, step_m: floa
     The arc radius is `corner_radius_m`, reduced where the neighbouring legs are too short for it.
     A loop also rounds the corner at the first waypoint and ends where it started.
     """
+    pts = _distinct_waypoints(waypoints, loop)
+    n = len(pts)
+    corners = list(range(n)) if loop else list(range(1, n - 1))
+    arcs = _corner_arcs(pts, corners, corner_radius_m)
+    if loop:
+        # start mid-way along the first leg so that the loop closes on a straight
+        start = 0.5 * (pts[0] + pts[1])
+        out, cursor = _trace_corners(pts, arcs, start, list(range(1, n)) + [0], step_m)
+        out += _line_poses(cursor, start, step_m)
+        out.append(np.array([start[0], start[1], out[0][2]]))
+    else:
+        out, cursor = _trace_corners(pts, arcs, pts[0], range(1, n - 1), step_m)
+        out += _line_poses(cursor, pts[-1], step_m)
+        out.append(np.array([pts[-1][0], pts[-1][1], out[-1][2] if out else 0.0]))
+    poses = np.array(out)
+    poses[:, 2] = se2.wrap(poses[:, 2])
+    return poses
+
+
+def _distinct_waypoints(waypoints, loop: bool) -> np.ndarray:
+    """(N, 2) waypoints without repeats; a loop also drops a last point that repeats the first."""
     pts = np.asarray(waypoints, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 2:
         raise ValueError("waypoints must be a list of at least two [x, y] pairs")
@@ -29,71 +62,71 @@ def smooth_waypoints(waypoints, corner_radius_m: float, loop: bool, step_m: floa
             pts = pts[:-1]
         if len(pts) < 3:
             raise ValueError("a loop needs at least three distinct waypoints")
-        corners = list(range(len(pts)))
-    else:
-        corners = list(range(1, len(pts) - 1))
+    return pts
+
+
+def _corner_arcs(pts: np.ndarray, corners, corner_radius_m: float) -> dict[int, _Arc]:
+    """The arc at each corner index in `corners` that turns at all (straight-through corners have none)."""
     n = len(pts)
-    # per corner: tangent points and arc
     arcs = {}
     for c in corners:
-        p_prev, p, p_next = pts[(c - 1) % n], pts[c], pts[(c + 1) % n]
-        d_in = (p - p_prev) / np.linalg.norm(p - p_prev)
-        d_out = (p_next - p) / np.linalg.norm(p_next - p)
-        turn = math.atan2(d_in[0] * d_out[1] - d_in[1] * d_out[0], float(np.dot(d_in, d_out)))
-        if abs(turn) < 1e-6:
-            continue
-        if abs(abs(turn) - math.pi) < 1e-3:
-            raise ValueError(f"waypoint {c} reverses the route; a robot cannot drive a 180 degree cusp")
-        t_max = 0.5 * min(np.linalg.norm(p - p_prev), np.linalg.norm(p_next - p))
-        t = min(corner_radius_m * math.tan(abs(turn) / 2), t_max)
-        radius = t / math.tan(abs(turn) / 2)
-        arcs[c] = (p - t * d_in, p + t * d_out, radius, turn, d_in)
+        arc = _corner_arc(pts[(c - 1) % n], pts[c], pts[(c + 1) % n], corner_radius_m, c)
+        if arc is not None:
+            arcs[c] = arc
+    return arcs
 
+
+def _corner_arc(p_prev, p, p_next, corner_radius_m: float, index: int) -> _Arc | None:
+    d_in = (p - p_prev) / np.linalg.norm(p - p_prev)
+    d_out = (p_next - p) / np.linalg.norm(p_next - p)
+    turn = math.atan2(d_in[0] * d_out[1] - d_in[1] * d_out[0], float(np.dot(d_in, d_out)))
+    if abs(turn) < 1e-6:
+        return None
+    if abs(abs(turn) - math.pi) < 1e-3:
+        raise ValueError(f"waypoint {index} reverses the route; a robot cannot drive a 180 degree cusp")
+    # the tangent points may use at most half of each leg, so that neighbouring arcs never overlap
+    t_max = 0.5 * min(np.linalg.norm(p - p_prev), np.linalg.norm(p_next - p))
+    t = min(corner_radius_m * math.tan(abs(turn) / 2), t_max)
+    radius = t / math.tan(abs(turn) / 2)
+    return _Arc(p - t * d_in, p + t * d_out, radius, turn, d_in)
+
+
+def _trace_corners(pts: np.ndarray, arcs: dict[int, _Arc], cursor, order, step_m: float):
+    """Poses from `cursor` through the corners in `order` (a line to each, then its arc if it has
+    one); returns them and the point where the last corner is left."""
     out: list[np.ndarray] = []
+    for c in order:
+        arc = arcs.get(c)
+        out += _line_poses(cursor, pts[c] if arc is None else arc.start, step_m)
+        if arc is not None:
+            out += _arc_poses(arc, step_m)
+        cursor = pts[c] if arc is None else arc.end
+    return out, cursor
 
-    def add_line(a, b):
-        d = b - a
-        length = float(np.linalg.norm(d))
-        if length < 1e-9:
-            return
-        k = max(1, int(math.ceil(length / step_m)))
-        th = math.atan2(d[1], d[0])
-        for j in range(k):
-            q = a + d * (j / k)
-            out.append(np.array([q[0], q[1], th]))
 
-    def add_arc(arc):
-        start, _end, radius, turn, d_in = arc
-        th0 = math.atan2(d_in[1], d_in[0])
-        sign = 1.0 if turn > 0 else -1.0
-        center = start + sign * radius * np.array([-d_in[1], d_in[0]])
-        length = radius * abs(turn)
-        k = max(1, int(math.ceil(length / step_m)))
-        for j in range(k):
-            a = turn * j / k
-            th = th0 + a
-            q = center + sign * radius * np.array([math.sin(th), -math.cos(th)])
-            out.append(np.array([q[0], q[1], th]))
+def _line_poses(a, b, step_m: float) -> list[np.ndarray]:
+    """Poses every <= `step_m` from `a` (included) towards `b` (excluded); none if a == b."""
+    d = b - a
+    length = float(np.linalg.norm(d))
+    if length < 1e-9:
+        return []
+    k = max(1, int(math.ceil(length / step_m)))
+    th = math.atan2(d[1], d[0])
+    return [np.array([q[0], q[1], th]) for q in (a + d * (j / k) for j in range(k))]
 
-    def add_corners(cursor, order):
-        for c in order:
-            add_line(cursor, arcs[c][0] if c in arcs else pts[c])
-            if c in arcs:
-                add_arc(arcs[c])
-            cursor = arcs[c][1] if c in arcs else pts[c]
-        return cursor
 
-    if loop:
-        # start mid-way along the first leg so that the loop closes on a straight
-        start_pt = 0.5 * (pts[0] + pts[1])
-        add_line(add_corners(start_pt, list(range(1, n)) + [0]), start_pt)
-        out.append(np.array([start_pt[0], start_pt[1], out[0][2]]))
-    else:
-        add_line(add_corners(pts[0], range(1, n - 1)), pts[-1])
-        out.append(np.array([pts[-1][0], pts[-1][1], out[-1][2] if out else 0.0]))
-    poses = np.array(out)
-    poses[:, 2] = se2.wrap(poses[:, 2])
-    return poses
+def _arc_poses(arc: _Arc, step_m: float) -> list[np.ndarray]:
+    """Poses every <= `step_m` along `arc` from its start (included) to its end (excluded)."""
+    th0 = math.atan2(arc.d_in[1], arc.d_in[0])
+    sign = 1.0 if arc.turn > 0 else -1.0
+    center = arc.start + sign * arc.radius * np.array([-arc.d_in[1], arc.d_in[0]])
+    k = max(1, int(math.ceil(arc.radius * abs(arc.turn) / step_m)))
+    out = []
+    for j in range(k):
+        th = th0 + arc.turn * j / k
+        q = center + sign * arc.radius * np.array([math.sin(th), -math.cos(th)])
+        out.append(np.array([q[0], q[1], th]))
+    return out
 
 
 class PurePursuitDriver:

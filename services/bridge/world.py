@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -224,104 +225,146 @@ def _make_ground(seed: int, lo: np.ndarray, hi: np.ndarray, res: float) -> Groun
     seeded lists, so strips join without seams."""
     size = hi - lo
     cols, rows = int(math.ceil(size[0] / res)), int(math.ceil(size[1] / res))
-    rng = np.random.default_rng([seed, 5100])
-    macro8, macro3 = _Noise(rng, 8.0, size), _Noise(rng, 3.0, size)
-    region = _Noise(rng, 1.6, size)
-    mid6, mid2 = _Noise(rng, 0.6, size), _Noise(rng, max(0.2, 3 * res), size)
-    shift = 2                                   # drawing with 1/4-texel precision
-    band_area = cols * _STRIP_ROWS * res * res  # m^2 of one band of rows
-    # a huge route gets coarser texels: small primitives then grow with them (same count per texel),
-    # so the texture keeps its corners and the work stays bounded by the texel budget
-    k = max(1.0, res / GROUND_RES_M)
-
-    def grass_at(c, r):
-        macro = 0.6 * macro8.at(res, c, r) + 0.4 * macro3.at(res, c, r)
-        return _smoothstep((region.at(res, c, r) + 0.3 * macro - 0.15) / 0.08 + 0.5)
-
-    def centres(g, density):
-        n = g.poisson(density * band_area)
-        return g.uniform([0, 0], [cols, _STRIP_ROWS], (n, 2)), n
-
-    def band(b: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Primitives centred in texel rows [b * _STRIP_ROWS, (b + 1) * _STRIP_ROWS): per kind the
-        polygons/segments (n, k, 2) in level-0 texels and their tones."""
-        g = np.random.default_rng([seed, 5300, b + 1])
-        y_off = np.array([0.0, b * _STRIP_ROWS])
-        out = {}
-        c, n = centres(g, 0.15)                 # large blotches, 0.25-1 m
-        c += y_off
-        out["blob"] = (_blob_polygons(g, n, c[:, 0], c[:, 1], g.uniform(0.25, 1.0, n) / res, 9, 0.35),
-                       g.choice([-28.0, -16.0, 16.0, 26.0], n))
-        c, n = centres(g, 1.5 / k ** 2)         # stones, 3-12 cm
-        c += y_off
-        out["stone"] = (_blob_polygons(g, n, c[:, 0], c[:, 1], k * g.uniform(0.03, 0.12, n) / res, 7, 0.3),
-                        g.choice([70.0, 105.0, 160.0, 200.0], n))
-        c, n = centres(g, 60.0 / k ** 2)        # pebbles on dirt, 1-3 cm
-        c = (c + y_off)[grass_at(c[:, 0], c[:, 1] + y_off[1]) < 0.5]
-        n = len(c)
-        out["pebble"] = (_blob_polygons(g, n, c[:, 0], c[:, 1], k * g.uniform(0.01, 0.03, n) / res, 5, 0.3),
-                         g.choice([60.0, 95.0, 175.0, 215.0], n))
-        c, n = centres(g, 350.0 / k ** 2)       # grass blades, 3-9 cm
-        c = (c + y_off)[grass_at(c[:, 0], c[:, 1] + y_off[1]) > 0.5]
-        n = len(c)
-        ang = g.uniform(0, np.pi, n)
-        dxy = np.column_stack([np.cos(ang), np.sin(ang)]) * (k * g.uniform(0.015, 0.045, n) / res)[:, None]
-        out["blade"] = (np.stack([c - dxy, c + dxy], axis=1), g.choice([40.0, 62.0, 125.0], n))
-        return out
-
-    def draw(img, i0, items, offset=(0.0, 0.0), lines=False, tone=None):
-        """Draw primitives (list of (polys, tones)) into strip `img` whose first row is texel row i0.
-        Polygons go in two batches fixed per polygon (OpenCV fills overlaps of one call even-odd)."""
-        polys = np.concatenate([p for p, _ in items])
-        tones = np.concatenate([t for _, t in items]) if tone is None else np.full(len(polys), tone)
-        if len(polys) == 0:
-            return
-        ys = polys[:, :, 1] + offset[1]
-        sel = (ys.max(axis=1) >= i0 - 2) & (ys.min(axis=1) <= i0 + img.shape[0] + 2)
-        q = np.round((polys[sel] + np.array([offset[0], offset[1] - i0])) * (1 << shift)).astype(np.int32)
-        t = tones[sel]
-        batch = np.round(polys[sel, 0, 0] * 8).astype(np.int64) % 2   # fixed per polygon
-        for tv in np.unique(t):
-            for bt in (0, 1):
-                part = q[(t == tv) & (batch == bt)]
-                if len(part) == 0:
-                    continue
-                if lines:
-                    cv2.polylines(img, part, False, float(tv), 1, cv2.LINE_8, shift)
-                else:
-                    cv2.fillPoly(img, part, float(tv), cv2.LINE_8, shift)
-
-    shadow_off = (0.35 * 0.06 * k / res, 0.25 * 0.06 * k / res)
+    noise = _ground_noise(seed, size, res)
     level0 = np.empty((rows, cols), np.uint8)
     cache: dict[int, dict] = {}
     for s_idx, i0 in enumerate(range(0, rows, _STRIP_ROWS)):
         h = min(_STRIP_ROWS, rows - i0)
+        # primitives centred in the neighbouring bands reach into this strip too
         for b in (s_idx - 1, s_idx, s_idx + 1):
             if b not in cache:
-                cache[b] = band(b)
+                cache[b] = _ground_band(seed, b, cols, res, noise)
         cache.pop(s_idx - 2, None)
         near = [cache[b] for b in (s_idx - 1, s_idx, s_idx + 1)]
-        macro = 0.6 * macro8.strip(res, i0, h, cols) + 0.4 * macro3.strip(res, i0, h, cols)
-        grass = _smoothstep((region.strip(res, i0, h, cols) + 0.3 * macro - 0.15) / 0.08 + 0.5)
-        mid = 0.6 * mid6.strip(res, i0, h, cols) + 0.4 * mid2.strip(res, i0, h, cols)
-        base = (135.0 + 22.0 * macro + 14.0 * mid) * (1.0 - grass) + (88.0 + 15.0 * macro + 10.0 * mid) * grass
-        del macro, grass, mid
-        delta = np.zeros((h, cols), np.float32)
-        draw(delta, i0, [p["blob"] for p in near])
-        base += delta
-        # contact shadows under stones and pebbles, then their faces, then grass blades
-        shade = np.zeros((h, cols), np.uint8)
-        draw(shade, i0, [p["stone"] for p in near], shadow_off, tone=1.0)
-        draw(shade, i0, [p["pebble"] for p in near], (shadow_off[0] / 3, shadow_off[1] / 3), tone=1.0)
-        base[shade > 0] *= 0.55
-        del shade, delta
-        draw(base, i0, [p["stone"] for p in near])
-        draw(base, i0, [p["pebble"] for p in near])
-        draw(base, i0, [p["blade"] for p in near], lines=True)
-        grain = np.random.default_rng([seed, 5200, s_idx]).standard_normal((h, cols), dtype=np.float32)
-        base += 14.0 * cv2.GaussianBlur(grain, (0, 0), 0.7)
-        level0[i0:i0 + h] = np.clip(base, 0, 255).astype(np.uint8)
+        level0[i0:i0 + h] = _ground_strip(seed, s_idx, i0, h, cols, res, noise, near)
     return GroundTexture(levels=mip_pyramid(level0), x0=float(lo[0]), y0=float(lo[1]), res_m=res)
+
+
+class _GroundNoise(NamedTuple):
+    macro8: _Noise               # broad brightness swells
+    macro3: _Noise
+    region: _Noise               # decides dirt against grass
+    mid6: _Noise                 # finer mottling
+    mid2: _Noise
+
+
+def _ground_noise(seed: int, size: np.ndarray, res: float) -> _GroundNoise:
+    # all layers draw from one generator in this order; reordering them would change every world
+    rng = np.random.default_rng([seed, 5100])
+    return _GroundNoise(_Noise(rng, 8.0, size), _Noise(rng, 3.0, size), _Noise(rng, 1.6, size),
+                        _Noise(rng, 0.6, size), _Noise(rng, max(0.2, 3 * res), size))
+
+
+def _primitive_scale(res: float) -> float:
+    # a huge route gets coarser texels: small primitives then grow with them (same count per texel),
+    # so the texture keeps its corners and the work stays bounded by the texel budget
+    return max(1.0, res / GROUND_RES_M)
+
+
+def _grass_at(noise: _GroundNoise, res: float, c: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Grass cover (0 = dirt, 1 = grass) at level-0 texel coordinates, as `_ground_tones` computes it."""
+    macro = 0.6 * noise.macro8.at(res, c, r) + 0.4 * noise.macro3.at(res, c, r)
+    return _smoothstep((noise.region.at(res, c, r) + 0.3 * macro - 0.15) / 0.08 + 0.5)
+
+
+def _ground_tones(noise: _GroundNoise, res: float, i0: int, rows: int, cols: int) -> np.ndarray:
+    """float32 base brightness of texel rows [i0, i0 + rows): noisy dirt blended into darker grass."""
+    macro = 0.6 * noise.macro8.strip(res, i0, rows, cols) + 0.4 * noise.macro3.strip(res, i0, rows, cols)
+    grass = _smoothstep((noise.region.strip(res, i0, rows, cols) + 0.3 * macro - 0.15) / 0.08 + 0.5)
+    mid = 0.6 * noise.mid6.strip(res, i0, rows, cols) + 0.4 * noise.mid2.strip(res, i0, rows, cols)
+    return (135.0 + 22.0 * macro + 14.0 * mid) * (1.0 - grass) + (88.0 + 15.0 * macro + 10.0 * mid) * grass
+
+
+def _ground_band(seed: int, b: int, cols: int, res: float, noise: _GroundNoise) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Primitives centred in texel rows [b * _STRIP_ROWS, (b + 1) * _STRIP_ROWS): per kind the
+    polygons/segments (n, k, 2) in level-0 texels and their tones."""
+    g = np.random.default_rng([seed, 5300, b + 1])
+    y_off = np.array([0.0, b * _STRIP_ROWS])
+    area = cols * _STRIP_ROWS * res * res  # m^2 of the band
+    k = _primitive_scale(res)
+    # the kinds draw from `g` one after the other, in this order
+    out = {}
+    c = _band_centres(g, 0.15 * area, cols) + y_off
+    out["blob"] = _band_blobs(g, c, (0.25, 1.0), 1.0, res, 9, 0.35, [-28.0, -16.0, 16.0, 26.0])
+    c = _band_centres(g, 1.5 / k ** 2 * area, cols) + y_off
+    out["stone"] = _band_blobs(g, c, (0.03, 0.12), k, res, 7, 0.3, [70.0, 105.0, 160.0, 200.0])
+    c = _band_centres(g, 60.0 / k ** 2 * area, cols) + y_off
+    c = c[_grass_at(noise, res, c[:, 0], c[:, 1]) < 0.5]      # pebbles lie on dirt
+    out["pebble"] = _band_blobs(g, c, (0.01, 0.03), k, res, 5, 0.3, [60.0, 95.0, 175.0, 215.0])
+    c = _band_centres(g, 350.0 / k ** 2 * area, cols) + y_off
+    c = c[_grass_at(noise, res, c[:, 0], c[:, 1]) > 0.5]      # blades grow on grass
+    out["blade"] = _band_blades(g, c, k, res)
+    return out
+
+
+def _band_centres(g: np.random.Generator, mean_count: float, cols: int) -> np.ndarray:
+    """(n, 2) uniform texel positions in a band, n Poisson distributed."""
+    n = g.poisson(mean_count)
+    return g.uniform([0, 0], [cols, _STRIP_ROWS], (n, 2))
+
+
+def _band_blobs(g, c, size_m, scale, res, vertices, jitter, tones) -> tuple[np.ndarray, np.ndarray]:
+    """Irregular polygons of radius `scale` x uniform(size_m) metres around `c`, with random tones."""
+    n = len(c)
+    radius = scale * g.uniform(*size_m, n) / res
+    return _blob_polygons(g, n, c[:, 0], c[:, 1], radius, vertices, jitter), g.choice(tones, n)
+
+
+def _band_blades(g, c, k, res) -> tuple[np.ndarray, np.ndarray]:
+    """Grass blades as (n, 2, 2) segments 3-9 cm long through `c`, with random tones."""
+    n = len(c)
+    ang = g.uniform(0, np.pi, n)
+    dxy = np.column_stack([np.cos(ang), np.sin(ang)]) * (k * g.uniform(0.015, 0.045, n) / res)[:, None]
+    return np.stack([c - dxy, c + dxy], axis=1), g.choice([40.0, 62.0, 125.0], n)
+
+
+def _ground_strip(seed: int, s_idx: int, i0: int, rows: int, cols: int, res: float, noise: _GroundNoise,
+                  near: list[dict]) -> np.ndarray:
+    """uint8 texel rows [i0, i0 + rows) of strip number `s_idx`, with the primitives of the bands `near`."""
+    base = _ground_tones(noise, res, i0, rows, cols)
+    delta = np.zeros((rows, cols), np.float32)
+    _draw_primitives(delta, i0, [p["blob"] for p in near])
+    base += delta
+    # contact shadows under stones and pebbles, then their faces, then grass blades
+    k = _primitive_scale(res)
+    shadow_off = (0.35 * 0.06 * k / res, 0.25 * 0.06 * k / res)
+    shade = np.zeros((rows, cols), np.uint8)
+    _draw_primitives(shade, i0, [p["stone"] for p in near], shadow_off, tone=1.0)
+    _draw_primitives(shade, i0, [p["pebble"] for p in near], (shadow_off[0] / 3, shadow_off[1] / 3), tone=1.0)
+    base[shade > 0] *= 0.55
+    del shade, delta
+    _draw_primitives(base, i0, [p["stone"] for p in near])
+    _draw_primitives(base, i0, [p["pebble"] for p in near])
+    _draw_primitives(base, i0, [p["blade"] for p in near], lines=True)
+    grain = np.random.default_rng([seed, 5200, s_idx]).standard_normal((rows, cols), dtype=np.float32)
+    base += 14.0 * cv2.GaussianBlur(grain, (0, 0), 0.7)
+    return np.clip(base, 0, 255).astype(np.uint8)
+
+
+_DRAW_SHIFT = 2                  # drawing with 1/4-texel precision
+
+
+def _draw_primitives(img, i0, items, offset=(0.0, 0.0), lines=False, tone=None) -> None:
+    """Draw primitives (list of (polys, tones)) into strip `img` whose first row is texel row i0.
+    Polygons go in two batches fixed per polygon (OpenCV fills overlaps of one call even-odd)."""
+    polys = np.concatenate([p for p, _ in items])
+    tones = np.concatenate([t for _, t in items]) if tone is None else np.full(len(polys), tone)
+    if len(polys) == 0:
+        return
+    ys = polys[:, :, 1] + offset[1]
+    sel = (ys.max(axis=1) >= i0 - 2) & (ys.min(axis=1) <= i0 + img.shape[0] + 2)
+    q = np.round((polys[sel] + np.array([offset[0], offset[1] - i0])) * (1 << _DRAW_SHIFT)).astype(np.int32)
+    t = tones[sel]
+    batch = np.round(polys[sel, 0, 0] * 8).astype(np.int64) % 2   # fixed per polygon
+    for tv in np.unique(t):
+        for bt in (0, 1):
+            part = q[(t == tv) & (batch == bt)]
+            if len(part) == 0:
+                continue
+            if lines:
+                cv2.polylines(img, part, False, float(tv), 1, cv2.LINE_8, _DRAW_SHIFT)
+            else:
+                cv2.fillPoly(img, part, float(tv), cv2.LINE_8, _DRAW_SHIFT)
 
 
 # --- landmarks ----------------------------------------------------------------------------------
@@ -402,72 +445,92 @@ def _landmark_texture(rng: np.random.Generator, kind: str, width: float, height:
     texel = max(LANDMARK_TEXEL_M, width / 512, height / 512)
     cols, rows = max(8, int(round(width / texel))), max(8, int(round(height / texel)))
     px = 1.0 / texel  # texels per metre
+    # the grain is drawn before the face so that every kind takes the same first draws
     grain = cv2.GaussianBlur(rng.standard_normal((rows, cols)).astype(np.float32), (0, 0), 0.7)
-    if kind == "rock":
-        img = 120 + 30 * _noise_img(rng, rows, cols, 0.4 * px, 0.4 * px) + 18 * _noise_img(rng, rows, cols, 0.08 * px, 0.08 * px)
-        for _ in range(int(4 + 6 * width)):          # cracks
-            p = rng.uniform([0, 0], [cols, rows])
-            pts = [p]
-            for _ in range(rng.integers(3, 8)):
-                p = p + rng.normal(0, 0.08 * px, 2)
-                pts.append(p)
-            cv2.polylines(img, [np.array(pts, np.int32)], False, float(rng.uniform(30, 60)), int(rng.integers(1, 3)))
-        for _ in range(int(30 * width * height)):    # lichen and pits
-            cv2.circle(img, (int(rng.uniform(0, cols)), int(rng.uniform(0, rows))), int(rng.uniform(0.01, 0.04) * px),
-                       float(rng.choice([55.0, 200.0])), -1)
-        img *= np.linspace(1.05, 0.7, rows, dtype=np.float32)[:, None]   # darker towards the ground
-    elif kind == "trunk":
-        img = 85 + 25 * _noise_img(rng, rows, cols, 0.5 * px, 0.03 * px) + 10 * _noise_img(rng, rows, cols, 0.1 * px, 0.1 * px)
-        for _ in range(int(8 * height)):             # bark furrows
-            x = rng.uniform(0, cols)
-            y = rng.uniform(0, rows)
-            pts = [(x, y)]
-            for _ in range(rng.integers(2, 6)):
-                x, y = x + rng.normal(0, 0.01 * px), y + rng.uniform(0.05, 0.2) * px
-                pts.append((x, y))
-            cv2.polylines(img, [np.array(pts, np.int32)], False, float(rng.uniform(25, 50)), int(rng.integers(1, 3)))
-        for _ in range(int(1 + 1.5 * height)):       # knots and broken branches
-            cv2.ellipse(img, (int(rng.uniform(0, cols)), int(rng.uniform(0, rows))),
-                        (int(rng.uniform(0.02, 0.06) * px), int(rng.uniform(0.03, 0.08) * px)), 0, 0, 360,
-                        float(rng.uniform(20, 45)), -1)
-        for _ in range(int(3 * height)):             # lighter patches of lichen
-            cv2.circle(img, (int(rng.uniform(0, cols)), int(rng.uniform(0, rows))), int(rng.uniform(0.01, 0.05) * px),
-                       float(rng.uniform(140, 190)), -1)
-    elif kind == "wall":
-        img = np.full((rows, cols), 175.0, np.float32)   # mortar
-        bh, bw = rng.uniform(0.06, 0.09) * px, rng.uniform(0.18, 0.26) * px
-        y, row = 0.0, 0
-        while y < rows:
-            x = -rng.uniform(0, bw) if row % 2 else -0.5 * bw
-            while x < cols:
-                w = bw * rng.uniform(0.8, 1.2)
-                cv2.rectangle(img, (int(x + 1), int(y + 1)), (int(x + w - 1), int(y + bh - 1)),
-                              float(rng.uniform(60, 150)), -1)
-                x += w
-            y += bh
-            row += 1
-        img += 10 * _noise_img(rng, rows, cols, 0.3 * px, 0.3 * px)
-        for _ in range(int(2 * width)):              # stains
-            cv2.circle(img, (int(rng.uniform(0, cols)), int(rng.uniform(0, rows))), int(rng.uniform(0.05, 0.2) * px),
-                       float(rng.uniform(40, 80)), -1)
-    else:  # fence: vertical planks with gaps, grain, nails and a rail
-        img = np.full((rows, cols), 35.0, np.float32)   # dark gaps between planks
-        x = 0.0
-        while x < cols:
-            w = rng.uniform(0.09, 0.15) * px
-            top = int(rng.uniform(0, 0.06) * px)
-            tone = float(rng.uniform(100, 170))
-            cv2.rectangle(img, (int(x), top), (int(x + w - 0.02 * px), rows - 1), tone, -1)
-            for _ in range(2):
-                yn = int(rng.uniform(0.1, 0.9) * rows)
-                cv2.circle(img, (int(x + 0.5 * w), yn), max(1, int(0.006 * px)), 30.0, -1)
-            x += w
-        img += 14 * _noise_img(rng, rows, cols, 0.4 * px, 0.015 * px)
-        for yr in (0.25, 0.75):
-            y0 = int(yr * rows)
-            cv2.rectangle(img, (0, y0), (cols - 1, y0 + int(0.08 * px)), float(rng.uniform(80, 130)), -1)
+    face = {"rock": _rock_face, "trunk": _trunk_face, "wall": _wall_face}.get(kind, _fence_face)
+    img = face(rng, rows, cols, px, width, height)
     img = img + 8 * grain
     return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _random_pixel(rng: np.random.Generator, rows: int, cols: int) -> tuple[int, int]:
+    return int(rng.uniform(0, cols)), int(rng.uniform(0, rows))
+
+
+def _rock_face(rng, rows, cols, px, width, height) -> np.ndarray:
+    img = 120 + 30 * _noise_img(rng, rows, cols, 0.4 * px, 0.4 * px) + 18 * _noise_img(rng, rows, cols, 0.08 * px, 0.08 * px)
+    for _ in range(int(4 + 6 * width)):          # cracks
+        p = rng.uniform([0, 0], [cols, rows])
+        pts = [p]
+        for _ in range(rng.integers(3, 8)):
+            p = p + rng.normal(0, 0.08 * px, 2)
+            pts.append(p)
+        cv2.polylines(img, [np.array(pts, np.int32)], False, float(rng.uniform(30, 60)), int(rng.integers(1, 3)))
+    for _ in range(int(30 * width * height)):    # lichen and pits
+        cv2.circle(img, _random_pixel(rng, rows, cols), int(rng.uniform(0.01, 0.04) * px),
+                   float(rng.choice([55.0, 200.0])), -1)
+    img *= np.linspace(1.05, 0.7, rows, dtype=np.float32)[:, None]   # darker towards the ground
+    return img
+
+
+def _trunk_face(rng, rows, cols, px, width, height) -> np.ndarray:
+    img = 85 + 25 * _noise_img(rng, rows, cols, 0.5 * px, 0.03 * px) + 10 * _noise_img(rng, rows, cols, 0.1 * px, 0.1 * px)
+    for _ in range(int(8 * height)):             # bark furrows
+        x = rng.uniform(0, cols)
+        y = rng.uniform(0, rows)
+        pts = [(x, y)]
+        for _ in range(rng.integers(2, 6)):
+            x, y = x + rng.normal(0, 0.01 * px), y + rng.uniform(0.05, 0.2) * px
+            pts.append((x, y))
+        cv2.polylines(img, [np.array(pts, np.int32)], False, float(rng.uniform(25, 50)), int(rng.integers(1, 3)))
+    for _ in range(int(1 + 1.5 * height)):       # knots and broken branches
+        cv2.ellipse(img, _random_pixel(rng, rows, cols),
+                    (int(rng.uniform(0.02, 0.06) * px), int(rng.uniform(0.03, 0.08) * px)), 0, 0, 360,
+                    float(rng.uniform(20, 45)), -1)
+    for _ in range(int(3 * height)):             # lighter patches of lichen
+        cv2.circle(img, _random_pixel(rng, rows, cols), int(rng.uniform(0.01, 0.05) * px),
+                   float(rng.uniform(140, 190)), -1)
+    return img
+
+
+def _wall_face(rng, rows, cols, px, width, height) -> np.ndarray:
+    img = np.full((rows, cols), 175.0, np.float32)   # mortar
+    bh, bw = rng.uniform(0.06, 0.09) * px, rng.uniform(0.18, 0.26) * px
+    y, row = 0.0, 0
+    while y < rows:                              # courses of bricks, every other one offset
+        x = -rng.uniform(0, bw) if row % 2 else -0.5 * bw
+        while x < cols:
+            w = bw * rng.uniform(0.8, 1.2)
+            cv2.rectangle(img, (int(x + 1), int(y + 1)), (int(x + w - 1), int(y + bh - 1)),
+                          float(rng.uniform(60, 150)), -1)
+            x += w
+        y += bh
+        row += 1
+    img += 10 * _noise_img(rng, rows, cols, 0.3 * px, 0.3 * px)
+    for _ in range(int(2 * width)):              # stains
+        cv2.circle(img, _random_pixel(rng, rows, cols), int(rng.uniform(0.05, 0.2) * px),
+                   float(rng.uniform(40, 80)), -1)
+    return img
+
+
+def _fence_face(rng, rows, cols, px, width, height) -> np.ndarray:
+    """Vertical planks with gaps, grain, nails and two rails."""
+    img = np.full((rows, cols), 35.0, np.float32)   # dark gaps between planks
+    x = 0.0
+    while x < cols:
+        w = rng.uniform(0.09, 0.15) * px
+        top = int(rng.uniform(0, 0.06) * px)
+        tone = float(rng.uniform(100, 170))
+        cv2.rectangle(img, (int(x), top), (int(x + w - 0.02 * px), rows - 1), tone, -1)
+        for _ in range(2):
+            yn = int(rng.uniform(0.1, 0.9) * rows)
+            cv2.circle(img, (int(x + 0.5 * w), yn), max(1, int(0.006 * px)), 30.0, -1)
+        x += w
+    img += 14 * _noise_img(rng, rows, cols, 0.4 * px, 0.015 * px)
+    for yr in (0.25, 0.75):
+        y0 = int(yr * rows)
+        cv2.rectangle(img, (0, y0), (cols - 1, y0 + int(0.08 * px)), float(rng.uniform(80, 130)), -1)
+    return img
 
 
 # --- sky and distant hills ---------------------------------------------------------------------
