@@ -13,6 +13,8 @@ from scipy.spatial import cKDTree
 from common import se2
 from common.messages import RouteMsg, check_name
 
+DEFAULT_SPACING_M = 0.25   # metres between vertices (VT&R keyframes) unless a route says otherwise
+
 
 @dataclass(frozen=True)
 class Projection:
@@ -26,7 +28,7 @@ class Projection:
 
 
 class Path:
-    def __init__(self, path_id: str, poses, *, loop: bool = False, spacing_m: float = 0.25,
+    def __init__(self, path_id: str, poses, *, loop: bool = False, spacing_m: float = DEFAULT_SPACING_M,
                  taught_by: str = "", curvature_window_m: float = 1.0):
         self.path_id = check_name("path_id", path_id)
         poses = np.asarray(poses, dtype=float)
@@ -160,7 +162,7 @@ class RouteRecorder:
     """Builds a route during teach: a new vertex whenever the robot has moved `spacing_m` from the
     last one (the VT&R keyframe rule), keeping the robot's own heading at that moment."""
 
-    def __init__(self, spacing_m: float = 0.25):
+    def __init__(self, spacing_m: float = DEFAULT_SPACING_M):
         if spacing_m <= 0:
             raise ValueError("spacing_m must be > 0")
         self.spacing_m = spacing_m

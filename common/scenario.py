@@ -4,16 +4,25 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path as FsPath
-from typing import Literal
+from typing import Literal, get_args
 
+from common.bins import BinPolicy
 from common.camera import StereoConfig
 from common.config import ConfigError, read_toml
 from common.messages import check_name
+from common.path import DEFAULT_SPACING_M
 from common.robot import RobotParams, robot_from_preset
 from common.typecheck import TypeCheckError, from_dict, to_dict
+# the sections one service reads are that service's own settings types: each default lives there
+from services.controller.fl import FLGains
+from services.controller.ilc import ILCGains
+from services.controller.settings import NMPCSettings
+from services.gp_store.config import FitConfig
+from services.scheduler.core import SchedulerParams
 
-ALGORITHMS = ("fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc")
 Algorithm = Literal["fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc"]
+ALGORITHMS: tuple[str, ...] = get_args(Algorithm)   # each has a steering law: services/controller/registry.py
+_FL = FLGains()
 TerrainKind = Literal["side_slope", "slip", "rough", "rut"]
 
 # keys each terrain kind takes besides kind/center/radius_m, with defaults where optional
@@ -36,7 +45,7 @@ class RobotSection:
 class PathSection:
     waypoints: list[tuple[float, float]]
     loop: bool = False
-    vertex_spacing_m: float = 0.25
+    vertex_spacing_m: float = DEFAULT_SPACING_M
     teach_speed_mps: float = 0.5
     corner_radius_m: float = 3.0
 
@@ -116,57 +125,16 @@ class LocalizationSection:
 
 
 @dataclass(frozen=True, kw_only=True)
-class ILCSection:
-    """[controller.ilc]: eq. 3.14-3.16 (gains in rad/s per m and rad/s, lookahead in vertices)."""
-    gamma_L: float = 0.8
-    gamma_H: float = 0.4
-    gamma_u: float = 1.0
-    lookahead: int = 4
-    ic_vertices: int = 8
-
-
-@dataclass(frozen=True, kw_only=True)
-class NMPCSection:
-    """[controller.nmpc]: cost weights (eq. 5.16) and solver settings; the horizon is controller.horizon."""
-    q_along: float = 1.0
-    q_lat: float = 40.0
-    q_head: float = 10.0
-    r_w: float = 0.2
-    r_dw: float = 1.0
-    q_terminal: float = 100.0
-    lookahead_m: float = 1.5
-    max_iter: int = 10
-    max_evals: int = 6
-    delay_compensation: bool = True
-    # MM-, C- and RC-LB-NMPC (chapters 6 and 7); see services/controller/nmpc.py NMPCSettings
-    sp_gamma: float = 2.0
-    mm_sigmas: float = 3.0
-    alpha: float = 3.0
-    r_v: float = 4.0
-    r_dv: float = 2.0
-    v_min_mps: float = 0.05
-    slack_weight: float = 2000.0
-    sqp_iter: int = 4
-    prior_std_base: tuple[float, float, float] = (0.001, 0.002, 0.003)
-    prior_std_per_mps: tuple[float, float, float] = (0.004, 0.008, 0.008)
-    prior_std_per_radps: tuple[float, float, float] = (0.002, 0.004, 0.015)
-    min_band_fraction: float = 0.2
-    process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)
-    actuator_tau_s: tuple[float, float] = (0.0, 0.0)   # the drive's lag (v, w), s; 0 = eq. 5.26 as is
-    crab_reference: bool = False    # with a learned model, the heading cost's reference is the learned crab
-
-
-@dataclass(frozen=True, kw_only=True)
 class ControllerSection:
     algorithm: Algorithm = "fl"
     horizon: int = 10
-    fl_gamma1: float = 1.0          # eq. 3.5 lateral gain (1/s^2)
-    fl_gamma2: float = 1.8          # eq. 3.5 heading gain (1/s)
-    curvature_feedforward: bool = True
+    fl_gamma1: float = _FL.gamma1   # eq. 3.5 lateral gain (1/s^2)
+    fl_gamma2: float = _FL.gamma2   # eq. 3.5 heading gain (1/s)
+    curvature_feedforward: bool = _FL.curvature_feedforward
     loc_timeout_s: float = 0.5      # stop when the newest estimate is older than this
     stop_decel_mps2: float = 0.4    # gentle deceleration into the end of the route
-    ilc: ILCSection = field(default_factory=ILCSection)
-    nmpc: NMPCSection = field(default_factory=NMPCSection)
+    ilc: ILCGains = field(default_factory=ILCGains)
+    nmpc: NMPCSettings = field(default_factory=NMPCSettings)    # its horizon is controller.horizon
 
     def __post_init__(self):
         if self.horizon < 1:
@@ -194,45 +162,26 @@ class ConstraintsSection:
 
 
 @dataclass(frozen=True, kw_only=True)
-class SchedulerSection:
-    """[scheduler]: thesis chapter 4 (names of table 5.1; defaults of its section 4.3.2). lambda_L in m,
-    lambda_H in degrees, lambda_omega in rad/s, accelerations in m/s^2; the first and last start_m /
-    end_m metres are limited to v_start / v_end (eq. 4.3)."""
+class SchedulerSection(SchedulerParams):
+    """[scheduler]: thesis chapter 4, the scheduler's own parameters (services/scheduler/core.py), and
+    whether it runs at all."""
     enabled: bool = False
-    v_init: float = 0.5
-    v_max: float = 2.0
-    gamma1: float = 0.2
-    gamma2: float = 0.24
-    lambda_L: float = 0.15
-    lambda_H: float = 10.0
-    lambda_feat: float = 30.0
-    lambda_omega: float = 1.0
-    lambda_db: float = 1.1
-    a_max: float = 0.2
-    a_min: float = -0.05
-    v_start: float = 0.4
-    start_m: float = 5.0
-    v_end: float = 0.4
-    end_m: float = 5.0
-    prune_min_m: float = 2.0
-    use_all_trials: bool = False     # beyond the thesis (4.4): never raise a vertex to where it failed
 
 
 @dataclass(frozen=True, kw_only=True)
-class StoreSection:
-    """Experience management (thesis 5.3.2, defaults of 5.4.2) and offline GP fitting (5.2.3)."""
-    v_bin_mps: float = 0.25
-    c_bin: int = 4
-    c_vertex: int = 5
-    c_velocity: int = 1
-    fit_restarts: int = 3
-    fit_max_points: int = 1000
+class StoreSection(BinPolicy):
+    """[store]: experience management (thesis 5.3.2, common/bins.py) and offline GP fitting (5.2.3)."""
+    fit_restarts: int = FitConfig.restarts
+    fit_max_points: int = FitConfig.max_points
 
     def __post_init__(self):
-        if self.v_bin_mps <= 0 or self.c_bin < 1 or self.c_vertex < 0 or self.c_velocity < 0:
-            raise ValueError("v_bin_mps > 0, c_bin >= 1, c_vertex >= 0, c_velocity >= 0 required")
+        super().__post_init__()
         if self.fit_restarts < 1 or self.fit_max_points < 10:
             raise ValueError("fit_restarts >= 1 and fit_max_points >= 10 required")
+
+    def bins(self) -> BinPolicy:
+        return BinPolicy(v_bin_mps=self.v_bin_mps, c_bin=self.c_bin, c_vertex=self.c_vertex,
+                         c_velocity=self.c_velocity)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -308,6 +257,8 @@ def parse_scenario(data: dict, where: str = "<scenario>") -> Scenario:
         raise ConfigError(f"{where}: robot.preset: expected a string")
     params = robot_from_preset(preset, robot_table, "robot")
     data["robot"] = {"preset": preset, "name": name, "params": to_dict(params)}
+    if "horizon" in ((data.get("controller") or {}).get("nmpc") or {}):
+        raise ConfigError(f"{where}: controller.nmpc.horizon: set the horizon as controller.horizon")
     try:
         sc = from_dict(Scenario, data)
     except TypeCheckError as exc:

@@ -1,15 +1,15 @@
 """Turn a scenario into one typed config per service, written as TOML next to the run's outputs."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 from common.config import dump_toml
 from common.typecheck import to_dict
 from common.scenario import Scenario
 from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
-from services.controller.config import ControllerConfig, CorridorConfig, FLConfig, LimitsConfig, StoreClientConfig
-from services.controller.ilc import ILCGains
-from services.controller.settings import NMPCSettings
+from services.controller.config import ControllerConfig, CorridorConfig, LimitsConfig, StoreClientConfig
+from services.controller.fl import FLGains
 from services.gp_store.config import BinConfig, FitConfig, StoreConfig
 from services.scheduler.config import SchedulerConfig
 from services.scheduler.core import SchedulerParams
@@ -42,9 +42,9 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         loc_timeout_s=ctl.loc_timeout_s, stop_decel_mps2=ctl.stop_decel_mps2,
         limits=LimitsConfig(v_max_mps=rp.v_max_mps, w_max_radps=rp.w_max_radps,
                             max_curvature_per_m=rp.max_curvature if rp.drive == "ackermann" else 0.0),
-        fl=FLConfig(gamma1=ctl.fl_gamma1, gamma2=ctl.fl_gamma2, curvature_feedforward=ctl.curvature_feedforward),
-        ilc=ILCGains(**to_dict(ctl.ilc)),
-        nmpc=NMPCSettings(horizon=ctl.horizon, **to_dict(ctl.nmpc)),
+        fl=FLGains(ctl.fl_gamma1, ctl.fl_gamma2, ctl.curvature_feedforward),
+        ilc=ctl.ilc,
+        nmpc=replace(ctl.nmpc, horizon=ctl.horizon),
         store=StoreClientConfig(v_bin_mps=sc.store.v_bin_mps, c_vertex=sc.store.c_vertex,
                                 c_velocity=sc.store.c_velocity),
         corridor=CorridorConfig(lateral_m=sc.constraints.lateral_m, heading_deg=sc.constraints.heading_deg,

@@ -4,7 +4,10 @@ import tomllib
 import pytest
 
 from common.config import ConfigError, dump_toml, load_config
+from common.bins import BinPolicy
 from common.scenario import load_scenario, parse_scenario
+from services.controller.settings import NMPCSettings
+from services.controller.uncertainty import PriorStd
 from deploy.configs import service_configs
 from deploy.experiment import check_supported
 
@@ -88,10 +91,30 @@ def _minimal(**extra):
     (_minimal(trials={"count": 3, "speeds": [0.3, 0.4]}), r"speeds has 2 entries"),
     (_minimal(localization={"noise_m": float("nan")}), r"localization\.noise_m: must be finite"),
     (_minimal(path={"waypoints": [[0, 0]]}), r"at least 2 points"),
+    (_minimal(controller={"nmpc": {"horizon": 20}}), r"set the horizon as controller\.horizon"),
+    (_minimal(controller={"nmpc": {"prior_std_base": [0.1, 0.1]}}), r"controller\.nmpc\.prior_std_base: expected 3 elements"),
+    (_minimal(store={"c_bin": 0}), r"c_bin >= 1"),
+    (_minimal(scheduler={"gamma1": -0.1}), r"gamma1 and gamma2 must be > 0"),
 ])
 def test_bad_scenarios_name_the_offending_key(data, match):
     with pytest.raises(ConfigError, match=match):
         parse_scenario(data)
+
+
+def test_the_sections_a_service_reads_are_its_own_settings():
+    """One default per setting: the scenario's [controller.nmpc], [controller.ilc], [scheduler] and [store]
+    tables are the services' own settings types, so every key a service takes is accepted as it is there."""
+    sc = parse_scenario(_minimal(controller={"algorithm": "rc-lb-nmpc", "horizon": 12,
+                                             "nmpc": {"tol": 1e-4, "prior_std_per_mps": [0.01, 0.02, 0.02]},
+                                             "ilc": {"gamma_u": 0.9}},
+                                 store={"c_vertex": 7}, scheduler={"enabled": True, "prune_min_m": 1.0}))
+    cfg = service_configs(sc, "/tmp/unused")
+    nmpc = cfg["controller"].nmpc
+    assert nmpc.horizon == 12 and nmpc.tol == 1e-4 and nmpc.prior_std_per_mps == (0.01, 0.02, 0.02)
+    assert nmpc.prior_std_base == NMPCSettings().prior_std_base == PriorStd().base
+    assert cfg["controller"].ilc.gamma_u == 0.9 and cfg["controller"].store.c_vertex == 7
+    assert cfg["gp_store"].bins.c_vertex == 7 and cfg["gp_store"].bins.c_bin == BinPolicy().c_bin
+    assert cfg["scheduler"].params.prune_min_m == 1.0
 
 
 def test_robot_overrides_apply_to_the_preset():

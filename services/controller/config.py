@@ -4,8 +4,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from common.bins import BinPolicy
+from services.controller.fl import FLGains
 from services.controller.ilc import ILCGains
 from services.controller.settings import NMPCSettings
+
+
+_BINS = BinPolicy()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -16,19 +21,12 @@ class LimitsConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
-class FLConfig:
-    gamma1: float = 1.0
-    gamma2: float = 1.8
-    curvature_feedforward: bool = True
-
-
-@dataclass(frozen=True, kw_only=True)
 class StoreClientConfig:
-    """Experiences out, local windows and hyperparameters in (thesis 5.3.2 window sizes)."""
+    """Experiences out, local windows and hyperparameters in (thesis 5.3.2 window sizes, common/bins.py)."""
     enabled: bool = True
-    v_bin_mps: float = 0.25
-    c_vertex: int = 5
-    c_velocity: int = 1
+    v_bin_mps: float = _BINS.v_bin_mps
+    c_vertex: int = _BINS.c_vertex
+    c_velocity: int = _BINS.c_velocity
     lookahead_vertices: int = 20
     resend_after_s: float = 2.0
     ack_timeout_s: float = 10.0   # at the end of a trial, wait this long for the store's acknowledgements
@@ -52,7 +50,7 @@ class ControllerConfig:
     stop_decel_mps2: float = 0.4
     route_timeout_s: float = 5.0
     limits: LimitsConfig
-    fl: FLConfig = field(default_factory=FLConfig)
+    fl: FLGains = field(default_factory=FLGains)
     ilc: ILCGains = field(default_factory=ILCGains)
     nmpc: NMPCSettings = field(default_factory=NMPCSettings)
     store: StoreClientConfig = field(default_factory=StoreClientConfig)

@@ -27,6 +27,10 @@ class FLGains:
     gamma2: float = 1.8   # 1/s, heading (damping ratio gamma2 / (2 sqrt(gamma1)))
     curvature_feedforward: bool = True
 
+    def __post_init__(self):
+        if not (self.gamma1 > 0 and self.gamma2 > 0):
+            raise ValueError("gamma1 and gamma2 must be > 0")
+
 
 def route_turn_rate(v: float, e_L: float, e_H: float, kappa: float) -> float:
     denom = 1.0 - kappa * e_L

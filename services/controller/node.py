@@ -26,7 +26,6 @@ from common.store_client import ExperienceOutbox, WindowCache
 from services.controller.config import ControllerConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
-from services.controller.fl import FLGains
 from services.controller.ilc import ILCMemory
 from services.controller.laws import SteeringLaw
 from services.controller.local_model import LocalModels
@@ -63,7 +62,7 @@ class ControllerService(Service):
         lim = cfg.limits
         self.limits = TrackerLimits(lim.v_max_mps, lim.w_max_radps,
                                     lim.max_curvature_per_m if lim.max_curvature_per_m > 0 else math.inf)
-        self.gains = FLGains(cfg.fl.gamma1, cfg.fl.gamma2, cfg.fl.curvature_feedforward)
+        self.gains = cfg.fl
         st = cfg.store
         # experiences are residuals of this nominal model, and only this model's are learned from
         self.model_tag = cfg.nmpc.lag(cfg.period_s).model_tag

@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from common.path import DEFAULT_SPACING_M
 from services.localizer.vision.settings import VisionSettings
 
 
@@ -26,6 +27,6 @@ class LocalizerConfig:
     seed: int = 0
     data_dir: str                    # taught routes live in <data_dir>/routes/<path_id>.route
     period_s: float = 0.1            # sensor period, to turn delays into ticks
-    vertex_spacing_m: float = 0.25
+    vertex_spacing_m: float = DEFAULT_SPACING_M
     pose: PoseSourceConfig = field(default_factory=PoseSourceConfig)
     vision: VisionSettings = field(default_factory=VisionSettings)

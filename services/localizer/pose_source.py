@@ -22,7 +22,7 @@ import numpy as np
 
 from common import se2
 from common.messages import LocState, TruthPose
-from common.path import Path, RouteRecorder
+from common.path import DEFAULT_SPACING_M, Path, RouteRecorder
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,7 @@ class PoseSourceSettings:
     delay_ticks: int = 0
     dropout_prob: float = 0.0
     dropout_ticks: int = 3
-    vertex_spacing_m: float = 0.25
+    vertex_spacing_m: float = DEFAULT_SPACING_M
     jumps: tuple[tuple[float, float, float], ...] = ()   # (at_m, length_m, lateral_m)
 
 

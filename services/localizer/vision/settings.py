@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from common.path import DEFAULT_SPACING_M
+
 
 @dataclass(frozen=True, kw_only=True)
 class VisionSettings:
@@ -47,7 +49,7 @@ class VisionSettings:
     huber_k: float = 2.0              # robust weight beyond k sigma
     min_inliers: int = 25             # below this an estimate is refused, never fabricated
     # --- teach: map building
-    keyframe_dist_m: float = 0.25
+    keyframe_dist_m: float = DEFAULT_SPACING_M
     keyframe_angle_deg: float = 5.0
     # --- repeat
     search_radius: int = 5            # keyframes either side of the hint tried at start / after loss
