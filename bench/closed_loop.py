@@ -76,15 +76,15 @@ class ClosedLoop:
         return self.path
 
     def repeat(self, trial: int, speed: float, law: SteeringLaw | None = None, max_steps: int = 20000,
-               ic_vertices: int = 0, corridor=None) -> RepeatResult:
+               ic_vertices: int = 0, corridor=None, lag: ActuatorLag = ActuatorLag()) -> RepeatResult:
+        """One repeat with `law` (FL by default); `lag`: the drive lag the controller models."""
         path = self.path
         self.sim.reset(self.ref[0], trial)
         self.source.start_repeat(path, trial, np.random.default_rng([self.seed, 12, trial]))
         r = self.robot
         tracker = PathTracker(path, law or FLLaw(FLGains()),
                               TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature), speed_mps=speed,
-                              ic_vertices=ic_vertices, corridor=corridor,
-                              lag=law.settings.lag(self.period_s) if hasattr(law, "settings") else ActuatorLag())
+                              ic_vertices=ic_vertices, corridor=corridor, lag=lag)
         core = ControllerCore(path, tracker, self.period_s)
         s = self.sim.sample()
         lat, head, hint, finished, observations = [], [], 0, False, []

@@ -103,7 +103,7 @@ class TimedLaw:
 
     def __init__(self, law, models: LocalModels, keep_every: int):
         self.law, self.models, self.keep_every = law, models, keep_every
-        self.name, self.settings = law.name, law.settings
+        self.name = law.name
         self.times, self.sizes, self.evals, self.statuses, self.prepare = [], [], [], [], []
         self.kept: list = []     # (ctx, the law's last_step) for the IPOPT comparison
 
@@ -132,7 +132,7 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
     law = entry.build(LawInputs(FLGains(), settings, DT, models.model_for))
     timed = TimedLaw(law, models, keep_every)
     corridor = Corridor(cl.path.s, 0.3, math.radians(20.0)) if entry.needs_corridor else None
-    cl.repeat(trial + 1, SPEEDS[1], law=timed, corridor=corridor)
+    cl.repeat(trial + 1, SPEEDS[1], law=timed, corridor=corridor, lag=settings.lag(DT))
     return Timing(np.array(timed.times), np.array(timed.sizes), timed.kept, np.array(timed.evals), timed.statuses,
                   np.array(timed.prepare), models.builds - models.prepared)
 
