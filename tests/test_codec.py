@@ -121,6 +121,10 @@ def test_rejects_invalid_nested_values():
     bad_batch["experiences"][0]["g"][1] = float("nan")
     with pytest.raises(DecodeError, match=r"experiences\[0\]\.g\[1\]: must be finite"):
         decode(m.ExperienceBatch, msgpack.packb(bad_batch))
+    for value, where in (([True] + [0.0] * 8, r"a\[0\]: expected a number"), ([0.0] * 8 + [float("inf")], r"a\[8\]: must be finite"),
+                         ([0.0] * 3 + ["1"] + [0.0] * 5, r"a\[3\]: expected a number")):
+        with pytest.raises(DecodeError, match=where):            # the checked path names the element
+            decode(m.Experience, _tampered(EXP, a=value))
     win = WINDOW
     with pytest.raises(DecodeError, match="do not hold"):
         decode(m.ExperienceWindow, _tampered(win, a_f64=bytes(8)))
