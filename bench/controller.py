@@ -42,7 +42,8 @@ from services.controller.registry import STEERING_LAWS, LawInputs
 from services.controller.robust_nmpc import CorridorStep, MinMaxStep
 from services.controller.settings import NMPCSettings
 from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
-from services.gp_store.db import BinPolicy, ExperienceDB
+from common.bins import BinPolicy
+from services.gp_store.db import ExperienceDB
 from services.gp_store.fitting import fit_route
 from services.localizer.pose_source import PoseSourceSettings
 
@@ -51,7 +52,7 @@ ROUTE = [[0, 0], [10, 0], [18, 6], [26, 6], [30, 2]]
 TERRAIN = [TerrainPatch(kind="side_slope", center=(13.0, 2.0), radius_m=6.0, slope_deg=12.0, downhill_deg=-90.0),
            TerrainPatch(kind="slip", center=(20.0, 5.0), radius_m=4.0, traction=0.6)]
 SPEEDS = (0.30, 0.55, 0.80)       # speed bins 1, 2, 3 with v_bin = 0.25
-POLICY = BinPolicy(v_bin_mps=0.25, c_bin=4, c_vertex=7, c_velocity=1)
+POLICY = BinPolicy(c_vertex=7)    # the full window of the docstring: 15 x 3 x 4
 DT = 0.1
 
 

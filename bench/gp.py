@@ -46,7 +46,7 @@ from common.gp import SEHyper, fit_hyperparameters, heuristic_hyper, hyper_bound
 from common.scenario import TerrainPatch
 from services.controller.experience import G_NAMES
 from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
-from services.gp_store.db import BinPolicy
+from common.bins import BinPolicy
 from services.localizer.pose_source import PoseSourceSettings
 
 DT = 0.1

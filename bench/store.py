@@ -289,11 +289,12 @@ def query_windows(session: zenoh.Session, bins: list[tuple[int, int]], v_bin: fl
 def run_bench(args: argparse.Namespace) -> dict:
     from deploy.launcher import Launcher
     from deploy.router import free_port
-    from services.gp_store.config import BinConfig, FitConfig, StoreConfig
+    from common.bins import BinPolicy
+    from services.gp_store.config import FitConfig, StoreConfig
     from services.localizer.config import LocalizerConfig
     from services.localizer.routes import RouteStore
 
-    bins_cfg = BinConfig()   # thesis defaults
+    bins_cfg = BinPolicy()   # thesis defaults
     rng = np.random.default_rng(args.seed)
     log.info("generating %d experiences on a %d-vertex route", args.n, args.vertices)
     work = make_workload(args.n, args.vertices, args.seed)

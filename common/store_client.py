@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
+from common.bins import BinPolicy
 from common import keys
 from common.bus import Node
 from common.codec import DecodeError, decode
@@ -132,14 +133,14 @@ class LocalData:
 
 
 class WindowCache:
-    def __init__(self, session: zenoh.Session, *, v_bin_mps: float = 0.25, c_vertex: int = 5, c_velocity: int = 1,
-                 lookahead_vertices: int = 20, query_timeout_s: float = 2.0, model: str = ""):
+    def __init__(self, session: zenoh.Session, *, bins: BinPolicy = BinPolicy(), lookahead_vertices: int = 20,
+                 query_timeout_s: float = 2.0, model: str = ""):
         self.session = session
         # windows and hyperparameters of this nominal model's experiences only ("": the route's newest)
         self.model = model
-        self.v_bin = v_bin_mps
-        self.cv = c_vertex
-        self.cl = c_velocity
+        self.v_bin = bins.v_bin_mps
+        self.cv = bins.c_vertex
+        self.cl = bins.c_velocity
         self.lookahead = lookahead_vertices
         self.timeout = query_timeout_s
         self._lock = threading.Lock()

@@ -10,7 +10,7 @@ from common.scenario import Scenario
 from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
 from services.controller.config import ControllerConfig, CorridorConfig, LimitsConfig, StoreClientConfig
 from services.controller.fl import FLGains
-from services.gp_store.config import BinConfig, FitConfig, StoreConfig
+from services.gp_store.config import FitConfig, StoreConfig
 from services.scheduler.config import SchedulerConfig
 from services.scheduler.core import SchedulerParams
 from services.localizer.config import LocalizerConfig, PoseSourceConfig
@@ -53,7 +53,7 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
     st = sc.store
     gp_store = StoreConfig(
         name="store1", db_path=str(Path(data_dir) / "experiences.db"), paths=["*"],
-        bins=BinConfig(v_bin_mps=st.v_bin_mps, c_bin=st.c_bin, c_vertex=st.c_vertex, c_velocity=st.c_velocity),
+        bins=st.bins(),
         # the experiment runner asks for a fit after every trial and waits for it: no automatic fits
         fit=FitConfig(restarts=st.fit_restarts, max_points=st.fit_max_points, seed=sc.seed, auto_after_trial=False))
     configs = {"bridge": bridge, "localizer": localizer, "controller": controller, "gp_store": gp_store}

@@ -9,7 +9,8 @@ from common.messages import Experience
 from common.path import Path
 from services.controller.actuator import ActuatorLag
 from services.controller.experience import ExperienceBuilder, body_residual, body_velocity, unicycle_step
-from services.gp_store.db import BinPolicy, ExperienceDB
+from common.bins import BinPolicy
+from services.gp_store.db import ExperienceDB
 
 DT = 0.1
 ROUTE = Path("r", np.column_stack([np.arange(0, 20, 0.25), np.zeros(80), np.zeros(80)]))

@@ -8,7 +8,8 @@ import sqlite3
 import pytest
 
 from common.messages import Experience
-from services.gp_store.db import BinPolicy, ExperienceDB
+from common.bins import BinPolicy
+from services.gp_store.db import ExperienceDB
 
 MODEL = "unicycle-dt100ms-tauv0ms-tauw400ms"
 

@@ -19,7 +19,8 @@ from common.path import Path
 from common.store_client import ExperienceOutbox, WindowCache
 from deploy.launcher import Launcher
 from deploy.router import free_port
-from services.gp_store.config import BinConfig, FitConfig, StoreConfig
+from common.bins import BinPolicy
+from services.gp_store.config import FitConfig, StoreConfig
 from services.localizer.config import LocalizerConfig
 from services.localizer.routes import RouteStore
 from tests.conftest import wait_until
@@ -37,7 +38,7 @@ class StoreRig:
             Path("dur", np.column_stack([np.arange(N_VERTICES) * 0.25, np.zeros(N_VERTICES), np.zeros(N_VERTICES)])), 0.0)
         (base / "loc.toml").write_text(dump_toml(LocalizerConfig(robot_name="r1", data_dir=str(base / "data"))))
         self.store_cfg = StoreConfig(name="s1", db_path=str(base / "data" / "exp.db"),
-                                     bins=BinConfig(c_bin=c_bin), fit=FitConfig(restarts=1, auto_after_trial=False))
+                                     bins=BinPolicy(c_bin=c_bin), fit=FitConfig(restarts=1, auto_after_trial=False))
         (base / "store.toml").write_text(dump_toml(self.store_cfg))
         self.port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"

@@ -31,6 +31,10 @@ class StoreClientConfig:
     resend_after_s: float = 2.0
     ack_timeout_s: float = 10.0   # at the end of a trial, wait this long for the store's acknowledgements
 
+    def bins(self) -> BinPolicy:
+        """The window geometry (c_bin is the store's business)."""
+        return BinPolicy(v_bin_mps=self.v_bin_mps, c_vertex=self.c_vertex, c_velocity=self.c_velocity)
+
 
 @dataclass(frozen=True, kw_only=True)
 class CorridorConfig:

@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 
 class LocalModels:
     def __init__(self, window: Callable[[int, float], Window], hyper: Callable[[], HyperMsg | None],
-                 horizon_s: float, v_bin_mps: float = 0.25, keep: int = 8, hold_steps: int = 0):
+                 horizon_s: float, v_bin_mps: float, keep: int = 8, hold_steps: int = 0):
         self.window = window
         self.hyper = hyper
         self.horizon_s = horizon_s

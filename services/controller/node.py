@@ -68,7 +68,7 @@ class ControllerService(Service):
         self.model_tag = cfg.nmpc.lag(cfg.period_s).model_tag
         self.outbox = ExperienceOutbox(node, r, resend_after_s=st.resend_after_s,
                                        model=self.model_tag) if st.enabled else None
-        self.cache = WindowCache(node.session, v_bin_mps=st.v_bin_mps, c_vertex=st.c_vertex, c_velocity=st.c_velocity,
+        self.cache = WindowCache(node.session, bins=st.bins(),
                                  lookahead_vertices=st.lookahead_vertices, model=self.model_tag) if st.enabled else None
 
     # --- control -----------------------------------------------------------------------------

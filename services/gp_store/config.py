@@ -3,18 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-
-@dataclass(frozen=True, kw_only=True)
-class BinConfig:
-    """Thesis 5.3.2 / 5.4.2 defaults: up to (2*5+1) * (2*1+1) * 4 = 132..180 experiences per window."""
-    v_bin_mps: float = 0.25
-    c_bin: int = 4
-    c_vertex: int = 5
-    c_velocity: int = 1
-
-    def __post_init__(self):
-        if self.v_bin_mps <= 0 or self.c_bin < 1 or self.c_vertex < 0 or self.c_velocity < 0:
-            raise ValueError("v_bin_mps > 0, c_bin >= 1, c_vertex >= 0 and c_velocity >= 0 required")
+from common.bins import BinPolicy
 
 
 # How fast a disturbance can physically change with each input of a (experience.py A_NAMES): terrain
@@ -44,5 +33,5 @@ class StoreConfig:
     name: str = "store1"
     db_path: str
     paths: list[str] = field(default_factory=lambda: ["*"])   # routes served here; split across machines
-    bins: BinConfig = field(default_factory=BinConfig)
+    bins: BinPolicy = field(default_factory=BinPolicy)   # thesis 5.3.2 / 5.4.2 (common/bins.py)
     fit: FitConfig = field(default_factory=FitConfig)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import sqlite3
 import struct
 import threading
@@ -27,6 +26,7 @@ from pathlib import Path as FsPath
 
 import numpy as np
 
+from common.bins import BinPolicy
 from common.messages import A_DIM, G_DIM, Experience
 
 SCHEMA_VERSION = 3
@@ -49,17 +49,6 @@ CREATE TABLE IF NOT EXISTS hypers (
     path_id TEXT NOT NULL, version INTEGER NOT NULL, stamp_s REAL NOT NULL, body TEXT NOT NULL,
     model TEXT NOT NULL DEFAULT '', PRIMARY KEY (path_id, version));
 """
-
-
-@dataclass(frozen=True)
-class BinPolicy:
-    v_bin_mps: float = 0.25
-    c_bin: int = 4
-    c_vertex: int = 5
-    c_velocity: int = 1
-
-    def speed_bin(self, v_cmd_mps: float) -> int:
-        return int(math.floor(v_cmd_mps / self.v_bin_mps))
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ from common.messages import (ExperienceAck, ExperienceBatch, ExperienceWindow, H
                              RouteMsg, StoreStats, TrialEvent, check_name)
 from common.service import Control, Service, service_main
 from services.gp_store.config import StoreConfig
-from services.gp_store.db import BinPolicy, ExperienceDB
+from services.gp_store.db import ExperienceDB
 from services.gp_store.fitting import fit_route
 
 DUMP_CHUNK = 2000
@@ -61,8 +61,7 @@ class StoreService(Service):
     def __init__(self, cfg: StoreConfig, node: Node):
         super().__init__(node)
         self.cfg = cfg
-        b = cfg.bins
-        self.policy = BinPolicy(b.v_bin_mps, b.c_bin, b.c_vertex, b.c_velocity)
+        self.policy = cfg.bins
         self.db = ExperienceDB(cfg.db_path, self.policy)
         self.serve_all = "*" in cfg.paths
         self.paths = {check_name("path_id", p) for p in cfg.paths if p != "*"}
