@@ -54,6 +54,7 @@ from common import keys
 from bench.report import run_and_print
 from common.bus import AliveWatcher, Node, query_one, setup_logging
 from common.codec import DecodeError, decode
+from common.path import DEFAULT_SPACING_M
 from common.config import dump_toml
 from common.messages import ExperienceWindow, RouteMsg, StoreStats
 from common.path import Path
@@ -63,7 +64,7 @@ log = logging.getLogger("bench.store")
 
 ROBOT = "r1"
 PATH_ID = "bench_store"
-SPACING_M = 0.25
+SPACING_M = DEFAULT_SPACING_M
 DT_S = 0.1                                   # 10 Hz control loop: one experience per tick
 TRIAL_SPEEDS = (0.3, 0.5, 0.7, 0.9, 1.1, 1.3, 1.5)
 ACCEL_MPS2 = 0.5
