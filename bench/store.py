@@ -54,10 +54,9 @@ from common import keys
 from bench.report import run_and_print
 from common.bus import AliveWatcher, Node, query_one, setup_logging
 from common.codec import DecodeError, decode
-from common.path import DEFAULT_SPACING_M
 from common.config import dump_toml
 from common.messages import ExperienceWindow, RouteMsg, StoreStats
-from common.path import Path
+from common.path import DEFAULT_SPACING_M, Path
 from common.store_client import ExperienceOutbox
 
 log = logging.getLogger("bench.store")
