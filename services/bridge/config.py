@@ -6,24 +6,26 @@ from typing import Literal
 
 from common.camera import StereoConfig
 from common.robot import RobotParams
-from common.scenario import TerrainPatch
+from common.scenario import PathSection, SimSection, TerrainPatch
 
 
 @dataclass(frozen=True, kw_only=True)
 class TeachConfig:
+    """The built-in teach driver: the scenario's [path] (its defaults are the scenario's)."""
     waypoints: list[tuple[float, float]]
     loop: bool = False
-    corner_radius_m: float = 3.0
-    speed_mps: float = 0.5
+    corner_radius_m: float = PathSection.corner_radius_m
+    speed_mps: float = PathSection.teach_speed_mps
 
 
 @dataclass(frozen=True, kw_only=True)
 class ClockConfig:
-    mode: Literal["lockstep", "realtime"] = "lockstep"
-    period_s: float = 0.1
-    physics_substeps: int = 10
-    watchdog_s: float = 0.3
-    lockstep_timeout_s: float = 2.0
+    """The scenario's [sim] (its defaults are the scenario's)."""
+    mode: Literal["lockstep", "realtime"] = SimSection.clock
+    period_s: float = SimSection.period_s
+    physics_substeps: int = SimSection.physics_substeps
+    watchdog_s: float = SimSection.watchdog_s
+    lockstep_timeout_s: float = SimSection.lockstep_timeout_s
 
 
 @dataclass(frozen=True, kw_only=True)
