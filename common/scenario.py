@@ -18,11 +18,13 @@ from services.controller.fl import FLGains
 from services.controller.ilc import ILCGains
 from services.controller.settings import NMPCSettings
 from services.gp_store.config import FitConfig
+from services.localizer.config import PoseSourceConfig
 from services.scheduler.core import SchedulerParams
 
 Algorithm = Literal["fl", "ilc", "lb-nmpc", "mm-lb-nmpc", "c-lb-nmpc", "rc-lb-nmpc"]
 ALGORITHMS: tuple[str, ...] = get_args(Algorithm)   # each has a steering law: services/controller/registry.py
 _FL = FLGains()
+_POSE = PoseSourceConfig()
 TerrainKind = Literal["side_slope", "slip", "rough", "rut"]
 
 # keys each terrain kind takes besides kind/center/radius_m, with defaults where optional
@@ -94,14 +96,15 @@ class TerrainPatch:
 
 @dataclass(frozen=True, kw_only=True)
 class LocalizationSection:
+    """[localization]: the source, and the `pose` source's errors (services/localizer/config.py)."""
     source: Literal["vision", "pose"] = "pose"
-    noise_m: float = 0.01           # std of the (slowly wandering) position error
-    noise_heading_deg: float = 0.3
-    noise_tau_s: float = 1.0        # its correlation time
-    jitter_m: float = 0.002         # independent frame-to-frame position error
-    delay_s: float = 0.0
-    dropout_prob: float = 0.0       # chance per tick that a dropout starts
-    dropout_s: float = 0.3          # length of each dropout
+    noise_m: float = _POSE.noise_m
+    noise_heading_deg: float = _POSE.noise_heading_deg
+    noise_tau_s: float = _POSE.noise_tau_s
+    jitter_m: float = _POSE.jitter_m
+    delay_s: float = _POSE.delay_s
+    dropout_prob: float = _POSE.dropout_prob
+    dropout_s: float = _POSE.dropout_s
     # teach-pass failures (thesis 5.4.5): [at_m, length_m, lateral_m] stretches of the route where the
     # estimate is shifted sideways by lateral_m although the robot does not move (every trial alike)
     jumps: list[tuple[float, float, float]] = field(default_factory=list)

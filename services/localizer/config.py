@@ -10,13 +10,14 @@ from services.localizer.vision.settings import VisionSettings
 
 @dataclass(frozen=True, kw_only=True)
 class PoseSourceConfig:
-    noise_m: float = 0.01
+    """The `pose` source's errors (the scenario's [localization] keys of the same names)."""
+    noise_m: float = 0.01           # std of the slowly wandering position error
     noise_heading_deg: float = 0.3
-    noise_tau_s: float = 1.0
-    jitter_m: float = 0.002
+    noise_tau_s: float = 1.0        # its correlation time
+    jitter_m: float = 0.002         # independent frame-to-frame position error
     delay_s: float = 0.0
-    dropout_prob: float = 0.0
-    dropout_s: float = 0.3
+    dropout_prob: float = 0.0       # chance per tick that a dropout starts
+    dropout_s: float = 0.3          # length of each dropout
     jumps: list[tuple[float, float, float]] = field(default_factory=list)   # [at_m, length_m, lateral_m]
 
 

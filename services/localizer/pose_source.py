@@ -23,18 +23,22 @@ import numpy as np
 from common import se2
 from common.messages import LocState, TruthPose
 from common.path import DEFAULT_SPACING_M, Path, RouteRecorder
+from services.localizer.config import PoseSourceConfig
+
+_CONFIG = PoseSourceConfig()
 
 
 @dataclass(frozen=True)
 class PoseSourceSettings:
-    noise_m: float = 0.01
-    noise_heading_rad: float = math.radians(0.3)
-    noise_tau_s: float = 1.0          # correlation time of the wandering error
-    jitter_m: float = 0.002           # independent per-frame error
+    """The service's PoseSourceConfig in the core's units (radians, ticks); the same defaults."""
+    noise_m: float = _CONFIG.noise_m
+    noise_heading_rad: float = math.radians(_CONFIG.noise_heading_deg)
+    noise_tau_s: float = _CONFIG.noise_tau_s          # correlation time of the wandering error
+    jitter_m: float = _CONFIG.jitter_m                # independent per-frame error
     period_s: float = 0.1
     delay_ticks: int = 0
-    dropout_prob: float = 0.0
-    dropout_ticks: int = 3
+    dropout_prob: float = _CONFIG.dropout_prob
+    dropout_ticks: int = round(_CONFIG.dropout_s / 0.1)
     vertex_spacing_m: float = DEFAULT_SPACING_M
     jumps: tuple[tuple[float, float, float], ...] = ()   # (at_m, length_m, lateral_m)
 
