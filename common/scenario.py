@@ -17,6 +17,7 @@ from common.typecheck import TypeCheckError, from_dict, to_dict
 from services.controller.fl import FLGains
 from services.controller.ilc import ILCGains
 from services.controller.settings import NMPCSettings
+from services.controller.tracker import LOC_TIMEOUT_S, STOP_DECEL_MPS2
 from services.gp_store.config import FitConfig
 from services.localizer.config import PoseSourceConfig
 from services.scheduler.core import SchedulerParams
@@ -134,8 +135,8 @@ class ControllerSection:
     fl_gamma1: float = _FL.gamma1   # eq. 3.5 lateral gain (1/s^2)
     fl_gamma2: float = _FL.gamma2   # eq. 3.5 heading gain (1/s)
     curvature_feedforward: bool = _FL.curvature_feedforward
-    loc_timeout_s: float = 0.5      # stop when the newest estimate is older than this
-    stop_decel_mps2: float = 0.4    # gentle deceleration into the end of the route
+    loc_timeout_s: float = LOC_TIMEOUT_S      # stop when the newest estimate is older than this
+    stop_decel_mps2: float = STOP_DECEL_MPS2  # gentle deceleration into the end of the route
     ilc: ILCGains = field(default_factory=ILCGains)
     nmpc: NMPCSettings = field(default_factory=NMPCSettings)    # its horizon is controller.horizon
 

@@ -8,6 +8,7 @@ from common.bins import BinPolicy
 from services.controller.fl import FLGains
 from services.controller.ilc import ILCGains
 from services.controller.settings import NMPCSettings
+from services.controller.tracker import LOC_TIMEOUT_S, STOP_DECEL_MPS2
 
 
 _BINS = BinPolicy()
@@ -50,8 +51,8 @@ class ControllerConfig:
     algorithm: str = "fl"
     clock_mode: Literal["lockstep", "realtime"] = "lockstep"
     period_s: float = 0.1
-    loc_timeout_s: float = 0.5
-    stop_decel_mps2: float = 0.4
+    loc_timeout_s: float = LOC_TIMEOUT_S
+    stop_decel_mps2: float = STOP_DECEL_MPS2
     route_timeout_s: float = 5.0
     limits: LimitsConfig
     fl: FLGains = field(default_factory=FLGains)

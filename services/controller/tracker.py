@@ -22,6 +22,9 @@ from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 
+LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
+STOP_DECEL_MPS2 = 0.4    # the gentle deceleration into the end of the route
+
 # what a law may fail with numerically (ArithmeticError: FloatingPointError, OverflowError, ZeroDivisionError)
 NUMERICAL_FAILURES = (ArithmeticError, np.linalg.LinAlgError)
 
@@ -56,7 +59,7 @@ class Decision:
 
 class PathTracker:
     def __init__(self, path: Path, law: SteeringLaw, limits: TrackerLimits, *, speed_mps: float,
-                 loc_timeout_s: float = 0.5, stop_decel_mps2: float = 0.4, ic_vertices: int = 0,
+                 loc_timeout_s: float = LOC_TIMEOUT_S, stop_decel_mps2: float = STOP_DECEL_MPS2, ic_vertices: int = 0,
                  schedule: np.ndarray | None = None, corridor: Corridor | None = None,
                  lag: ActuatorLag = ActuatorLag()):
         self.path = path
