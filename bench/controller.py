@@ -71,9 +71,8 @@ def build_memory(seed: int, workdir: str):
                                 for i, o in enumerate(r.observations)])
             seq += len(r.observations)
     A, G, tiles = db.all_of("route")
-    body = fit_route("route", A, G, tiles, 3, 1000, seed, None, DEFAULT_MIN_LENGTHSCALES)
-    hyper = HyperMsg(stamp_s=0.0, path_id="route", version=1, n_used=body["n_used"], n_total=len(A),
-                     fit_s=body["fit_s"], lml=body["lml"], dims=[HyperDim(**d) for d in body["dims"]])
+    fit = fit_route("route", A, G, tiles, 3, 1000, seed, None, DEFAULT_MIN_LENGTHSCALES)
+    hyper = fit.message(version=1, stamp_s=0.0)
     # windows in memory, as the controller's prefetch cache holds them
     windows = {}
     for v in range(len(path)):

@@ -38,6 +38,7 @@ import sys
 import time
 import warnings
 from contextlib import nullcontext
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -63,9 +64,19 @@ def _log(msg: str) -> None:
     print(f"[bench.gp] {msg}", file=sys.stderr, flush=True)
 
 
-def generate(n: int, seed: int, speeds=SPEEDS) -> tuple[np.ndarray, np.ndarray, dict]:
-    """N disturbance observations (A (n, 9), G (n, 3)) and a summary of how they were made (incl. the
-    store's window tile of each, `info["tiles"]`)."""
+@dataclass(frozen=True)
+class Observations:
+    """N disturbance observations and how they were made."""
+    A: np.ndarray          # (n, 9): a of eq. 5.15
+    G: np.ndarray          # (n, 3): g of eq. 5.17
+    tiles: np.ndarray      # (n,): the store's window tile of each (services/gp_store/db.py, all_of)
+    trials: int            # simulated repeats
+    pool: int              # observations they yielded, of which n were drawn
+    sim_s: float           # wall time of teach and repeats, rounded to ms
+
+
+def generate(n: int, seed: int, speeds=SPEEDS) -> Observations:
+    """N disturbance observations drawn from simulated repeats (see the module doc)."""
     data = ClosedLoop(ROUTE, TERRAIN, preset="husky", seed=seed, loc=PoseSourceSettings(), period_s=DT)
     t0 = time.perf_counter()
     data.teach()
@@ -89,9 +100,8 @@ def generate(n: int, seed: int, speeds=SPEEDS) -> tuple[np.ndarray, np.ndarray, 
             raise RuntimeError("the simulated repeats yield no observations")
     A, G = np.concatenate(As), np.concatenate(Gs)
     pick = np.sort(np.random.default_rng([seed, 21]).choice(len(A), size=n, replace=False))
-    info = {"trials": trial, "pool": int(len(A)), "sim_s": round(time.perf_counter() - t0, 3),
-            "tiles": np.asarray(tiles)[pick]}
-    return A[pick], G[pick], info
+    return Observations(A=A[pick], G=G[pick], tiles=np.asarray(tiles)[pick], trials=trial, pool=int(len(A)),
+                        sim_s=round(time.perf_counter() - t0, 3))
 
 
 def _sklearn_fit(X: np.ndarray, Y: np.ndarray, restarts: int, seed: int) -> tuple[list[SEHyper], float, list[float]]:
@@ -153,8 +163,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args, blas_threads: int | None) -> int:
 
-    X, Y, info = generate(args.n, args.seed)
-    _log(f"{len(X)} observations from {info['trials']} trials (pool {info['pool']}), "
+    obs = generate(args.n, args.seed)
+    X, Y = obs.A, obs.G
+    _log(f"{len(X)} observations from {obs.trials} trials (pool {obs.pool}), "
          f"rms g = {np.sqrt(np.mean(Y ** 2, axis=0)).round(5).tolist()}")
 
     rng = np.random.default_rng([args.seed, 31])
@@ -175,7 +186,7 @@ def _run(args, blas_threads: int | None) -> int:
     # what the experience store runs: the likelihood of its local windows with physical lengthscale
     # floors (services/gp_store): a deliberately different objective, so its exact LML on E is lower
     store = fit_hyperparameters(X, Y, restarts=args.restarts, rng=np.random.default_rng([args.seed, 33]),
-                                max_points=args.max_points, groups=info["tiles"],
+                                max_points=args.max_points, groups=obs.tiles,
                                 min_lengthscales=np.asarray(DEFAULT_MIN_LENGTHSCALES))
     store_lml = float(sum(log_marginal_likelihood(XE, YE[:, j], h) for j, h in enumerate(store.hypers)))
     _log(f"store's method (local windows, floors): {store.seconds:.2f} s, LML on E = {store_lml:.3f}")
@@ -214,8 +225,8 @@ def _run(args, blas_threads: int | None) -> int:
         "max_points": int(args.max_points),
         "seed": int(args.seed),
         "blas_threads": blas_threads,
-        "trials": info["trials"],
-        "sim_s": info["sim_s"],
+        "trials": obs.trials,
+        "sim_s": obs.sim_s,
         "store_method_fit_s": round(store.seconds, 4),
         "store_method_lml": _finite(store_lml),
         "store_method_lml_gap_pct": _finite(100.0 * (sk_lml - store_lml) / abs(sk_lml)) if sk_lml else None,

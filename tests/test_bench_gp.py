@@ -28,7 +28,8 @@ def test_bench_gp_reports_a_fit_within_2_percent_of_sklearn(capsys):
 
 def test_disturbance_observations_follow_eq_5_17():
     """Small, direct check of the generator: 9 inputs, 3 body-frame residuals of the right size."""
-    A, G, info = bench_gp.generate(200, seed=3, speeds=(0.5, 1.0))
+    obs = bench_gp.generate(200, seed=3, speeds=(0.5, 1.0))
+    A, G = obs.A, obs.G
     assert A.shape == (200, 9) and G.shape == (200, 3)
     assert np.all(np.isfinite(A)) and np.all(np.isfinite(G))
     # commanded speeds are the trial speeds, the gentle stop at the end, or 0 while rolling to a halt
@@ -37,4 +38,4 @@ def test_disturbance_observations_follow_eq_5_17():
     assert np.abs(A[:, 1]).max() < 0.5
     # one-step residuals are centimetres, not metres (dt = 0.1 s)
     assert np.abs(G[:, :2]).max() < 0.1 and np.abs(G[:, 2]).max() < 0.2
-    assert info["trials"] >= 2
+    assert obs.trials >= 2 and obs.pool >= 200 and obs.tiles.shape == (200,)

@@ -5,12 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from common.messages import Experience
+from common.messages import Experience, HyperDim, HyperMsg, PathStats
 from common.path import Path
 from services.controller.actuator import ActuatorLag
 from services.controller.experience import ExperienceBuilder, body_residual, body_velocity, unicycle_step
 from common.bins import BinPolicy
 from services.gp_store.db import ExperienceDB
+from services.gp_store.fitting import FitResult
 
 DT = 0.1
 ROUTE = Path("r", np.column_stack([np.arange(0, 20, 0.25), np.zeros(80), np.zeros(80)]))
@@ -73,6 +74,21 @@ def exp(seq, vertex, v=0.5, path="p", robot="r1"):
                       a=tuple(float(seq + i) for i in range(9)), g=(0.001 * seq, 0.0, 0.0))
 
 
+def fit(lml, path="p"):
+    return FitResult(path_id=path, n_used=20, n_total=20, fit_s=0.5, lml=(lml, lml, lml),
+                     dims=tuple(HyperDim(lengthscales=[1.0 + j] * 9, signal_std=0.01, noise_std=0.001)
+                                for j in range(3)))
+
+
+# a fit's stored body as the store wrote it before fits were typed (the dict of fit_route plus the node's
+# keys, in that order); schema 1 and 2 files have no "model" in it
+OLD_BODY = {"path_id": "p", "n_used": 20, "n_total": 25, "fit_s": 1.5, "lml": [10.5, 11.0, -3.25],
+            "dims": [{"lengthscales": [0.5 + i for i in range(9)], "signal_std": 0.02, "noise_std": 0.003}] * 3,
+            "stamp_s": 7.0, "version": 1}
+OLD_MSG = HyperMsg(stamp_s=7.0, path_id="p", version=1, n_used=20, n_total=25, fit_s=1.5, lml=[10.5, 11.0, -3.25],
+                   dims=[HyperDim(lengthscales=[0.5 + i for i in range(9)], signal_std=0.02, noise_std=0.003)] * 3)
+
+
 def test_bins_keep_the_newest_c_bin_and_windows_follow_5_3_2(tmp_path):
     db = ExperienceDB(tmp_path / "x.db", BinPolicy(v_bin_mps=0.25, c_bin=4, c_vertex=2, c_velocity=1))
     db.ingest("s1", [exp(i, vertex=i % 10, v=0.5 + 0.3 * (i % 3)) for i in range(300)])
@@ -86,28 +102,29 @@ def test_bins_keep_the_newest_c_bin_and_windows_follow_5_3_2(tmp_path):
     w = db.window("p", 3, 0.5)
     assert set(w.vertices) == {1, 2, 3, 4, 5} and set(w.speed_bins) == {2, 3}
     assert len(w.A) == 5 * 2 * 4 and w.G.shape == (40, 3)
-    assert db.stats() == [{"path_id": "p", "retained": 10 * 3 * 4, "ingested": 300, "bins": 30, "hyper_version": 0}]
+    assert db.stats() == [PathStats(path_id="p", retained=10 * 3 * 4, ingested=300, bins=30, hyper_version=0)]
 
 
 def test_resends_are_stored_once_even_after_eviction_and_robots_pool(tmp_path):
     db = ExperienceDB(tmp_path / "x.db", BinPolicy(c_bin=2))
     db.ingest("s1", [exp(i, vertex=0) for i in range(5)])
     assert db.ingest("s1", [exp(0, vertex=0), exp(4, vertex=0)]) == [0, 4]   # acknowledged again ...
-    assert db.stats()[0]["ingested"] == 5                                     # ... but not stored again
+    assert db.stats()[0].ingested == 5                                        # ... but not stored again
     db.ingest("s2", [exp(0, vertex=0, robot="r2")])                            # another robot, same bin
     w = db.window("p", 0, 0.5, c_vertex=0, c_velocity=0)
-    assert len(w.A) == 2 and db.stats()[0]["ingested"] == 6
+    assert len(w.A) == 2 and db.stats()[0].ingested == 6
 
 
 def test_database_survives_reopening_and_versions_hyperparameters(tmp_path):
     path = tmp_path / "x.db"
     db = ExperienceDB(path)
     db.ingest("s1", [exp(i, vertex=i) for i in range(20)])
-    assert db.save_hyper("p", {"lml": [1.0]}, 1.0) == 1
-    assert db.save_hyper("p", {"lml": [2.0]}, 2.0) == 2
+    assert db.save_hyper(fit(1.0), "", 1.0).version == 1
+    saved = db.save_hyper(fit(2.0), "", 2.0)
+    assert saved == fit(2.0).message(version=2, stamp_s=2.0)
     db.close()
     db = ExperienceDB(path)
-    assert db.stats()[0]["retained"] == 20 and db.latest_hyper("p")["lml"] == [2.0]
+    assert db.stats()[0].retained == 20 and db.stats()[0].hyper_version == 2 and db.latest_hyper("p") == saved
     A, G, tiles = db.all_of("p")
     assert A.shape == (20, 9) and G[7, 0] == pytest.approx(0.007)
     assert len(set(tiles.tolist())) == 2   # vertices 0..19 in tiles of 2 * 5 + 1 vertices
@@ -135,13 +152,13 @@ def test_each_nominal_model_keeps_its_own_bins_windows_and_fit_data(tmp_path):
 
 def test_hyperparameters_are_kept_per_nominal_model_with_versions_counted_per_route(tmp_path):
     db = ExperienceDB(tmp_path / "x.db")
-    assert db.save_hyper("p", {"lml": [1.0], "model": "m-a"}, 1.0) == 1
-    assert db.save_hyper("p", {"lml": [2.0], "model": "m-b"}, 2.0) == 2
-    assert db.save_hyper("p", {"lml": [3.0], "model": "m-a"}, 3.0) == 3
-    assert db.save_hyper("q", {"lml": [4.0]}, 4.0) == 1                  # another route counts its own
-    assert db.latest_hyper("p", "m-a")["lml"] == [3.0] and db.latest_hyper("p", "m-b")["version"] == 2
-    assert db.latest_hyper("p", "m-c") is None and db.latest_hyper("p")["model"] == "m-a"
-    assert db.latest_hyper("q", "") == {"lml": [4.0], "version": 1, "model": ""}
+    assert db.save_hyper(fit(1.0), "m-a", 1.0).version == 1
+    assert db.save_hyper(fit(2.0), "m-b", 2.0).version == 2
+    assert db.save_hyper(fit(3.0), "m-a", 3.0).version == 3
+    assert db.save_hyper(fit(4.0, "q"), "", 4.0).version == 1            # another route counts its own
+    assert db.latest_hyper("p", "m-a").lml == [3.0] * 3 and db.latest_hyper("p", "m-b").version == 2
+    assert db.latest_hyper("p", "m-c") is None and db.latest_hyper("p").model == "m-a"
+    assert db.latest_hyper("q", "") == fit(4.0, "q").message(version=1, stamp_s=4.0, model="")
 
 
 def test_a_schema_1_database_is_migrated_in_place_with_its_experiences_untagged(tmp_path):
@@ -166,7 +183,7 @@ def test_a_schema_1_database_is_migrated_in_place_with_its_experiences_untagged(
     db.ingest("s2", [dataclasses.replace(exp(1, vertex=0), model="unicycle-dt100ms-tauv0ms-tauw0ms")])
     db.close()
     db = ExperienceDB(path)                                          # reopened: schema 3 now, both kept
-    assert db.stats()[0]["retained"] == 2 and db.current_model("p") == "unicycle-dt100ms-tauv0ms-tauw0ms"
+    assert db.stats()[0].retained == 2 and db.current_model("p") == "unicycle-dt100ms-tauv0ms-tauw0ms"
 
 
 def test_a_schema_2_database_keeps_its_hyperparameters_untagged(tmp_path):
@@ -181,16 +198,32 @@ def test_a_schema_2_database_keeps_its_hyperparameters_untagged(tmp_path):
         CREATE TABLE hypers (path_id TEXT NOT NULL, version INTEGER NOT NULL, stamp_s REAL NOT NULL,
             body TEXT NOT NULL, PRIMARY KEY (path_id, version));
         UPDATE meta SET value='2' WHERE key='schema';""")
-    con.execute("INSERT INTO hypers VALUES ('p', 1, 0.0, ?)", (json.dumps({"lml": [1.0], "version": 1}),))
+    con.execute("INSERT INTO hypers VALUES ('p', 1, 7.0, ?)", (json.dumps(OLD_BODY),))
     con.commit()
     con.close()
     db = ExperienceDB(path)
-    assert db.latest_hyper("p", "") == {"lml": [1.0], "version": 1, "model": ""}
-    assert db.save_hyper("p", {"lml": [2.0], "model": "m-a"}, 1.0) == 2 and db.latest_hyper("p", "m-a")["version"] == 2
+    assert db.latest_hyper("p", "") == OLD_MSG and db.latest_hyper("p") == OLD_MSG
+    assert db.save_hyper(fit(2.0), "m-a", 1.0).version == 2 and db.latest_hyper("p", "m-a").version == 2
     db.close()
     con = sqlite3.connect(path)
     assert con.execute("SELECT value FROM meta WHERE key='schema'").fetchone() == ("3",)
     con.close()
+
+
+def test_a_schema_3_fit_stored_as_a_dict_loads_as_its_message(tmp_path):
+    """Schema 3 files written before fits were typed hold the same body plus "model" (and the column)."""
+    import json
+    import sqlite3
+    path = tmp_path / "x.db"
+    ExperienceDB(path).close()
+    con = sqlite3.connect(path)
+    con.execute("INSERT INTO hypers (path_id, version, stamp_s, body, model) VALUES ('p', 1, 7.0, ?, 'm-a')",
+                (json.dumps(dict(OLD_BODY, model="m-a")),))
+    con.commit()
+    con.close()
+    db = ExperienceDB(path)
+    assert db.latest_hyper("p", "m-a") == dataclasses.replace(OLD_MSG, model="m-a")
+    assert db.save_hyper(fit(2.0), "m-a", 8.0).version == 2
 
 
 def test_an_export_written_before_model_tags_imports_untagged():
@@ -205,3 +238,21 @@ def test_an_export_written_before_model_tags_imports_untagged():
     body["experiences"][0]["a"] = [float("nan")] * 9                 # still checked like any other batch
     with pytest.raises(Exception):
         _decode_batch(msgpack.packb(body))
+
+
+def test_a_fit_is_a_picklable_value_that_warm_starts_the_next():
+    """fit_route runs in a spawned worker: its result crosses back pickled, and the store hands the last
+    fit's dimensions to the next one."""
+    import pickle
+    from services.gp_store.fitting import fit_route
+    rng = np.random.default_rng(0)
+    A, G = rng.normal(size=(40, 9)), 0.01 * rng.normal(size=(40, 3))
+    first = fit_route("p", A, G, None, 0, 100, 0, None, None)
+    assert pickle.loads(pickle.dumps(first)) == first
+    assert (first.path_id, first.n_used, first.n_total, len(first.dims), len(first.lml)) == ("p", 40, 40, 3, 3)
+    again = fit_route("p", A, G, None, 0, 100, 0, list(first.message(version=1, stamp_s=0.0).dims), None)
+    # started at the optimum with no restarts: it stays there (up to the optimizer's tolerance)
+    assert again.lml == pytest.approx(first.lml, rel=1e-6)
+    for d, d0 in zip(again.dims, first.dims):
+        assert d.lengthscales == pytest.approx(d0.lengthscales, rel=1e-3)
+        assert d.signal_std == pytest.approx(d0.signal_std, rel=1e-3)

@@ -109,3 +109,39 @@ def test_pass_collector_keeps_the_worst_of_each_vertex():
     assert p.e_lat_m[1] == pytest.approx(0.08) and p.e_head_rad[1] == pytest.approx(0.02)
     assert p.w_cmd_radps[1] == pytest.approx(0.3) and p.features[1] == 35
     assert p.seen.tolist() == [False, True, False]
+
+
+def test_the_database_keeps_schedules_as_messages_and_loads_bodies_written_as_dicts(tmp_path):
+    """Schedules and passes survive reopening; a schedule body as the scheduler wrote it before schedules
+    were typed (a dict in the node's key order) loads as the same message."""
+    import json
+    import sqlite3
+
+    from common.messages import SpeedSchedule
+    from services.scheduler.db import ScheduleDB
+
+    path = tmp_path / "sched.db"
+    ScheduleDB(path).close()
+    old = {"stamp_s": 5.0, "path_id": "r", "based_on_robot": "", "based_on_trial": 0, "v_mps": [0.4, 0.5, 0.4],
+           "decisions": [0, 0, 0], "notes": ["trial 1 at v_init = 0.5 m/s"], "version": 1}
+    con = sqlite3.connect(path)
+    con.execute("INSERT INTO schedules VALUES ('r', 1, 5.0, '', 0, ?)", (json.dumps(old),))
+    con.commit()
+    con.close()
+    db = ScheduleDB(path)
+    first = SpeedSchedule(**old)
+    assert db.latest("r") == first and db.based_on("r", "", 0) == first and db.latest("other") is None
+    s = np.array([0.0, 0.25, 0.5])
+    pa = passes([0.05, np.nan, 0.3], [1, 1, 1], [0.1, 0.1, 0.1])
+    proposal = next_schedule(np.array(first.v_mps), pa, s, np.column_stack([s, np.zeros(3)]), P)
+    db.save_passes("r", "r1", 1, first.version, pa)
+    second = db.add_schedule("r", proposal, "r1", 1, 6.0)
+    assert second == SpeedSchedule(stamp_s=6.0, path_id="r", version=2, based_on_robot="r1", based_on_trial=1,
+                                   v_mps=proposal.schedule.tolist(), decisions=proposal.decisions.tolist(),
+                                   notes=proposal.notes)
+    db.close()
+    db = ScheduleDB(path)
+    assert db.latest("r") == second and db.based_on("r", "r1", 1) == second
+    [(v, kept)] = db.history("r")
+    assert v.tolist() == first.v_mps and np.array_equal(kept.e_lat_m, pa.e_lat_m, equal_nan=True)
+    db.close()

@@ -27,7 +27,9 @@ from pathlib import Path as FsPath
 import numpy as np
 
 from common.bins import BinPolicy
-from common.messages import A_DIM, G_DIM, Experience
+from common.messages import A_DIM, G_DIM, Experience, HyperMsg, PathStats
+from common.typecheck import from_dict, to_dict
+from services.gp_store.fitting import FitResult
 
 SCHEMA_VERSION = 3
 _PACK_A, _PACK_G = struct.Struct(f"<{A_DIM}d"), struct.Struct(f"<{G_DIM}d")
@@ -150,24 +152,23 @@ class ExperienceDB:
             self._newest_model.update(newest)   # eviction keeps each bin's newest (c_bin >= 1)
         return [e.seq for e in experiences]
 
-    def save_hyper(self, path_id: str, body: dict, stamp_s: float) -> int:
-        """Store a fit (body["model"]: the nominal model of the experiences it was fitted on, default
-        ""); returns its version, one more than the route's newest of any model."""
-        model = str(body.get("model", ""))
+    def save_hyper(self, fit: FitResult, model: str, stamp_s: float) -> HyperMsg:
+        """Store a fit on the experiences of nominal model `model` as the route's next version (one more
+        than its newest of any model); returns it as the message to publish."""
         with self._lock:
             cur = self._db.cursor()
             cur.execute("BEGIN IMMEDIATE")
             try:
                 (version,) = cur.execute("SELECT COALESCE(MAX(version), 0) + 1 FROM hypers WHERE path_id=?",
-                                         (path_id,)).fetchone()
-                body = dict(body, version=version, model=model)
+                                         (fit.path_id,)).fetchone()
+                msg = fit.message(version=version, stamp_s=stamp_s, model=model)
                 cur.execute("INSERT INTO hypers (path_id, version, stamp_s, body, model) VALUES (?, ?, ?, ?, ?)",
-                            (path_id, version, stamp_s, json.dumps(body), model))
+                            (msg.path_id, version, stamp_s, json.dumps(to_dict(msg)), model))
                 cur.execute("COMMIT")
             except BaseException:
                 cur.execute("ROLLBACK")
                 raise
-        return version
+        return msg
 
     # --- reading ------------------------------------------------------------------------------
     def window(self, path_id: str, vertex: int, v_cmd_mps: float, c_vertex: int | None = None,
@@ -230,16 +231,16 @@ class ExperienceDB:
                                          v_cmd_mps=r[6], a=tuple(np.frombuffer(r[8], "<f8").tolist()),
                                          g=tuple(np.frombuffer(r[9], "<f8").tolist()), model=r[11])) for r in rows]
 
-    def latest_hyper(self, path_id: str, model: str | None = None) -> dict | None:
+    def latest_hyper(self, path_id: str, model: str | None = None) -> HyperMsg | None:
         """The newest fit of a route for one nominal model (None: of any model)."""
         sql, args = "SELECT body, model FROM hypers WHERE path_id=?", (path_id,)
         if model is not None:
             sql, args = sql + " AND model=?", args + (model,)
         with self._rlock:
             row = self._rdb.execute(sql + " ORDER BY version DESC LIMIT 1", args).fetchone()
-        return dict(json.loads(row[0]), model=row[1]) if row else None
+        return _hyper_from_row(*row) if row else None
 
-    def stats(self) -> list[dict]:
+    def stats(self) -> list[PathStats]:
         with self._rlock:
             kept = dict(self._rdb.execute("SELECT path_id, COUNT(*) FROM experiences GROUP BY path_id").fetchall())
             bins = dict(self._rdb.execute("SELECT path_id, COUNT(*) FROM (SELECT DISTINCT path_id, vertex, speed_bin "
@@ -247,14 +248,20 @@ class ExperienceDB:
             total = dict(self._rdb.execute("SELECT path_id, total FROM ingested").fetchall())
             hyper = dict(self._rdb.execute("SELECT path_id, MAX(version) FROM hypers GROUP BY path_id").fetchall())
         paths = sorted(set(kept) | set(total) | set(hyper))
-        return [{"path_id": p, "retained": kept.get(p, 0), "ingested": total.get(p, 0), "bins": bins.get(p, 0),
-                 "hyper_version": hyper.get(p, 0)} for p in paths]
+        return [PathStats(path_id=p, retained=kept.get(p, 0), ingested=total.get(p, 0), bins=bins.get(p, 0),
+                          hyper_version=hyper.get(p, 0)) for p in paths]
 
     def max_bin_count(self, path_id: str) -> int:
         with self._rlock:
             row = self._rdb.execute("SELECT MAX(n) FROM (SELECT COUNT(*) AS n FROM experiences WHERE path_id=? "
                                    "GROUP BY model, vertex, speed_bin)", (path_id,)).fetchone()
         return row[0] or 0
+
+
+def _hyper_from_row(body: str, model: str) -> HyperMsg:
+    """A stored fit as the HyperMsg it was published as. Bodies written before schema 3 have no "model":
+    the column has it for every row (migrated ones: "")."""
+    return from_dict(HyperMsg, dict(json.loads(body), model=model))
 
 
 def _stack(blobs: list[bytes], dim: int) -> np.ndarray:

@@ -1,26 +1,50 @@
 """Offline GP hyperparameter fitting for one route (thesis 5.2.3), run in a worker process so that the
-store keeps answering queries; the worker gets arrays in and returns plain data out."""
+store keeps answering queries; the worker gets arrays in and returns a `FitResult` (plain, picklable
+values) out."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from common.gp import SEHyper, fit_hyperparameters
+from common.messages import HyperDim, HyperMsg
+
+
+@dataclass(frozen=True, kw_only=True)
+class FitResult:
+    """One fit of a route's hyperparameters, before the store gives it a version."""
+    path_id: str
+    n_used: int                   # experiences the likelihood was maximized on (a subsample above max_points)
+    n_total: int                  # experiences of the fitted model on file
+    fit_s: float                  # wall time of the optimization, in the worker
+    lml: tuple[float, ...]        # log marginal likelihood per output dimension of g
+    dims: tuple[HyperDim, ...]    # hyperparameters per output dimension of g
+
+    def message(self, *, version: int, stamp_s: float, model: str = "") -> HyperMsg:
+        """The HyperMsg of this fit as version `version` for nominal model `model`."""
+        return HyperMsg(stamp_s=stamp_s, path_id=self.path_id, version=version, n_used=self.n_used,
+                        n_total=self.n_total, fit_s=self.fit_s, lml=list(self.lml), dims=list(self.dims), model=model)
 
 
 def fit_route(path_id: str, A: np.ndarray, G: np.ndarray, tiles: np.ndarray | None, restarts: int,
-              max_points: int, seed: int, init: list[dict] | None, min_lengthscales: list[float] | None) -> dict:
-    """Maximize the log marginal likelihood per output dimension; returns the body of a HyperMsg.
+              max_points: int, seed: int, init: list[HyperDim] | None,
+              min_lengthscales: list[float] | None) -> FitResult:
+    """Maximize the log marginal likelihood per output dimension, from `init` (a previous fit's
+    dimensions) if given.
 
     With `tiles`, the likelihood is that of the local windows the controller predicts from (each an
     independent GP), so the hyperparameters describe how the disturbance varies *within* a place;
     `min_lengthscales` are the physical floors (see StoreConfig)."""
     t0 = time.perf_counter()
-    hypers = [SEHyper.from_dict(d) for d in init] if init else None
+    hypers = None
+    if init:
+        hypers = [SEHyper(np.asarray(d.lengthscales, dtype=float), d.signal_std, d.noise_std) for d in init]
     floors = np.asarray(min_lengthscales, dtype=float) if min_lengthscales else None
     res = fit_hyperparameters(A, G, restarts=restarts, rng=np.random.default_rng(seed), max_points=max_points,
                               init=hypers, groups=tiles, min_lengthscales=floors)
-    return {"path_id": path_id, "n_used": int(res.n_used), "n_total": int(len(A)),
-            "fit_s": time.perf_counter() - t0, "lml": [float(x) for x in res.lml],
-            "dims": [h.to_dict() for h in res.hypers]}
+    dims = tuple(HyperDim(lengthscales=[float(v) for v in h.lengthscales], signal_std=float(h.signal_std),
+                          noise_std=float(h.noise_std)) for h in res.hypers)
+    return FitResult(path_id=path_id, n_used=int(res.n_used), n_total=int(len(A)), fit_s=time.perf_counter() - t0,
+                     lml=tuple(float(x) for x in res.lml), dims=dims)

@@ -28,23 +28,15 @@ from common import keys
 from common.bus import Node, query_one, query_params
 from common.codec import DecodeError, encode
 from common.lifecycle import die_with_parent
-from common.messages import (ExperienceAck, ExperienceBatch, ExperienceWindow, HyperDim, HyperMsg, PathStats,
-                             RouteMsg, StoreStats, TrialEvent, check_name)
+from common.messages import (ExperienceAck, ExperienceBatch, ExperienceWindow, RouteMsg, StoreStats, TrialEvent,
+                             check_name)
 from common.service import Control, Service, service_main
+from common.typecheck import to_dict
 from services.gp_store.config import StoreConfig
 from services.gp_store.db import ExperienceDB
-from services.gp_store.fitting import fit_route
+from services.gp_store.fitting import FitResult, fit_route
 
 DUMP_CHUNK = 2000
-
-
-def hyper_msg(body: dict) -> HyperMsg:
-    return HyperMsg(stamp_s=float(body.get("stamp_s", 0.0)), path_id=body["path_id"], version=int(body["version"]),
-                    n_used=int(body["n_used"]), n_total=int(body["n_total"]), fit_s=float(body["fit_s"]),
-                    lml=[float(x) for x in body["lml"]],
-                    dims=[HyperDim(lengthscales=[float(v) for v in d["lengthscales"]], signal_std=float(d["signal_std"]),
-                                   noise_std=float(d["noise_std"])) for d in body["dims"]],
-                    model=str(body.get("model", "")))
 
 
 @dataclass
@@ -199,11 +191,11 @@ class StoreService(Service):
                 check_name("model", model)
             else:
                 model = self.db.current_model(path_id)
-            body = self.db.latest_hyper(path_id, model)
-            if body is None:
+            hyper = self.db.latest_hyper(path_id, model)
+            if hyper is None:
                 query.reply_err(f"no hyperparameters for {path_id} (model {model or 'untagged'}) yet".encode())
             else:
-                query.reply(keys.store_hyper(path_id), encode(hyper_msg(body)))
+                query.reply(keys.store_hyper(path_id), encode(hyper))
         self._answer(query, answer)
 
     def _on_dump(self, query: zenoh.Query) -> None:
@@ -227,7 +219,7 @@ class StoreService(Service):
 
     def _on_stats(self, query: zenoh.Query) -> None:
         def answer():
-            stats = [PathStats(**s) for s in self.db.stats() if self.serves(s["path_id"])]
+            stats = [s for s in self.db.stats() if self.serves(s.path_id)]
             query.reply(f"{keys.store_stats()}", encode(StoreStats(stamp_s=time.time(), store=self.cfg.name,
                                                                     db_path=str(self.db.path), paths=stats)))
         self._answer(query, answer)
@@ -281,7 +273,7 @@ class StoreService(Service):
                       model or "untagged")
         state.retained_at_fit = len(A)
         state.running = self._pool.submit(fit_route, path_id, A, G, tiles if f.local_windows else None,
-                                          f.restarts, f.max_points, f.seed, prev["dims"] if prev else None,
+                                          f.restarts, f.max_points, f.seed, prev.dims if prev else None,
                                           list(f.min_lengthscales))
         state.running.add_done_callback(lambda fut: self.inbox.put(("fit_done", (path_id, model, fut))))
 
@@ -290,11 +282,8 @@ class StoreService(Service):
         state.running = None
         waiting, state.waiting = state.waiting, []
         try:
-            body = fut.result()
-            body["stamp_s"] = time.time()
-            body["model"] = model
-            body["version"] = self.db.save_hyper(path_id, body, body["stamp_s"])
-            msg = hyper_msg(body)
+            fit: FitResult = fut.result()
+            msg = self.db.save_hyper(fit, model, time.time())
             self.node.publish(keys.store_hyper(path_id), msg)
             self.log.info("%s: hyperparameters v%d from %d/%d experiences in %.1f s (LML %s)", path_id, msg.version,
                           msg.n_used, msg.n_total, msg.fit_s, [round(x, 1) for x in msg.lml])
@@ -313,7 +302,8 @@ class StoreService(Service):
 
     def on_control(self, ctl: Control) -> None:
         if ctl.request.action == "ping":
-            return self.reply(ctl, True, f"store {self.cfg.name}: {self.db.stats()}")
+            # the text the ping always gave: one plain mapping per route
+            return self.reply(ctl, True, f"store {self.cfg.name}: {[to_dict(s) for s in self.db.stats()]}")
         return self.reply(ctl, True, "the store is shared; trial control does not apply")
 
     def close(self) -> None:

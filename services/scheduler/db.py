@@ -8,7 +8,9 @@ from pathlib import Path as FsPath
 
 import numpy as np
 
-from services.scheduler.core import VertexPasses
+from common.messages import SpeedSchedule
+from common.typecheck import from_dict, to_dict
+from services.scheduler.core import Proposal, VertexPasses
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS schedules (
@@ -18,6 +20,19 @@ CREATE TABLE IF NOT EXISTS passes (
     path_id TEXT NOT NULL, robot TEXT NOT NULL, trial INTEGER NOT NULL, schedule_version INTEGER NOT NULL,
     body TEXT NOT NULL, PRIMARY KEY (path_id, robot, trial));
 """
+
+
+def _load_schedule(body: str) -> SpeedSchedule:
+    """A stored schedule body: the SpeedSchedule map as published (every version of this file wrote all
+    of its keys)."""
+    return from_dict(SpeedSchedule, json.loads(body))
+
+
+def _load_passes(body: str) -> VertexPasses:
+    """A stored trial's passes (JSON null where NaN: no data at that vertex)."""
+    p = json.loads(body)
+    return VertexPasses(_from_list(p["e_lat_m"]), _from_list(p["e_head_rad"]), _from_list(p["w_cmd_radps"]),
+                        _from_list(p["features"]))
 
 
 def _nan_list(a: np.ndarray) -> list:
@@ -42,34 +57,36 @@ class ScheduleDB:
         with self._lock:
             self._db.close()
 
-    def latest(self, path_id: str) -> dict | None:
+    def latest(self, path_id: str) -> SpeedSchedule | None:
         with self._lock:
             row = self._db.execute("SELECT body FROM schedules WHERE path_id=? ORDER BY version DESC LIMIT 1",
                                    (path_id,)).fetchone()
-        return json.loads(row[0]) if row else None
+        return _load_schedule(row[0]) if row else None
 
-    def based_on(self, path_id: str, robot: str, trial: int) -> dict | None:
+    def based_on(self, path_id: str, robot: str, trial: int) -> SpeedSchedule | None:
         with self._lock:
             row = self._db.execute("SELECT body FROM schedules WHERE path_id=? AND based_on_robot=? AND "
                                    "based_on_trial=? ORDER BY version DESC LIMIT 1", (path_id, robot, trial)).fetchone()
-        return json.loads(row[0]) if row else None
+        return _load_schedule(row[0]) if row else None
 
-    def add_schedule(self, body: dict) -> dict:
-        """Store the next version of a route's schedule; returns it with its version."""
+    def add_schedule(self, path_id: str, proposal: Proposal, robot: str, trial: int, stamp_s: float) -> SpeedSchedule:
+        """Store a proposal (made from `robot`'s `trial`; "" and 0 for the first) as the next version of
+        a route's schedule; returns it as the message to publish."""
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
                 (version,) = self._db.execute("SELECT COALESCE(MAX(version), 0) + 1 FROM schedules WHERE path_id=?",
-                                              (body["path_id"],)).fetchone()
-                body = dict(body, version=version)
+                                              (path_id,)).fetchone()
+                msg = SpeedSchedule(stamp_s=stamp_s, path_id=path_id, version=version, based_on_robot=robot,
+                                    based_on_trial=trial, v_mps=[float(v) for v in proposal.schedule],
+                                    decisions=[int(d) for d in proposal.decisions], notes=list(proposal.notes))
                 self._db.execute("INSERT INTO schedules VALUES (?, ?, ?, ?, ?, ?)",
-                                 (body["path_id"], version, body["stamp_s"], body["based_on_robot"],
-                                  body["based_on_trial"], json.dumps(body)))
+                                 (path_id, version, stamp_s, robot, trial, json.dumps(to_dict(msg))))
                 self._db.execute("COMMIT")
             except BaseException:
                 self._db.execute("ROLLBACK")
                 raise
-        return body
+        return msg
 
     def save_passes(self, path_id: str, robot: str, trial: int, version: int, p: VertexPasses) -> None:
         body = json.dumps({"e_lat_m": _nan_list(p.e_lat_m), "e_head_rad": _nan_list(p.e_head_rad),
@@ -83,9 +100,4 @@ class ScheduleDB:
         with self._lock:
             rows = self._db.execute("SELECT p.body, s.body FROM passes p JOIN schedules s ON s.path_id = p.path_id "
                                     "AND s.version = p.schedule_version WHERE p.path_id=?", (path_id,)).fetchall()
-        out = []
-        for pb, sb in rows:
-            p, s = json.loads(pb), json.loads(sb)
-            out.append((np.array(s["v_mps"]), VertexPasses(_from_list(p["e_lat_m"]), _from_list(p["e_head_rad"]),
-                                                            _from_list(p["w_cmd_radps"]), _from_list(p["features"]))))
-        return out
+        return [(np.array(_load_schedule(sb).v_mps), _load_passes(pb)) for pb, sb in rows]

@@ -29,14 +29,8 @@ from common.messages import (ControllerStatus, LocState, RouteMsg, ScheduleUpdat
 from common.path import Path
 from common.service import Control, Service, service_main
 from services.scheduler.config import SchedulerConfig
-from services.scheduler.core import PassCollector, failure_speeds, initial_schedule, next_schedule
+from services.scheduler.core import PassCollector, Proposal, failure_speeds, initial_schedule, next_schedule
 from services.scheduler.db import ScheduleDB
-
-
-def schedule_msg(body: dict) -> SpeedSchedule:
-    return SpeedSchedule(stamp_s=body["stamp_s"], path_id=body["path_id"], version=body["version"],
-                         based_on_robot=body["based_on_robot"], based_on_trial=body["based_on_trial"],
-                         v_mps=body["v_mps"], decisions=body["decisions"], notes=body["notes"])
 
 
 @dataclass
@@ -87,7 +81,7 @@ class SchedulerService(Service):
             latest = self.db.latest(path_id)
             if route is None or latest is None:
                 return None   # not a scheduled route (no schedule was ever asked for)
-            entry = self.collecting[key] = Collecting(PassCollector(len(route)), latest["version"])
+            entry = self.collecting[key] = Collecting(PassCollector(len(route)), latest.version)
         return entry
 
     def on_message(self, kind: str, item) -> None:
@@ -137,7 +131,7 @@ class SchedulerService(Service):
                 self.log.warning("%s trial %d on %s: no end-of-route status; scheduling from what arrived",
                                  p.robot, p.trial, p.path_id)
             if p.query is not None:
-                self._answer(p.query, lambda _q, p=p: schedule_msg(self._update(p.path_id, p.robot, p.trial)))
+                self._answer(p.query, lambda _q, p=p: self._update(p.path_id, p.robot, p.trial))
             else:
                 try:
                     self._update(p.path_id, p.robot, p.trial)
@@ -155,27 +149,24 @@ class SchedulerService(Service):
                 return None
         return self.routes[path_id]
 
-    def _store(self, path_id: str, proposal, robot: str, trial: int) -> dict:
-        body = self.db.add_schedule({
-            "stamp_s": time.time(), "path_id": path_id, "based_on_robot": robot, "based_on_trial": trial,
-            "v_mps": [float(v) for v in proposal.schedule], "decisions": [int(d) for d in proposal.decisions],
-            "notes": list(proposal.notes)})
-        self.node.publish(keys.sched_schedule(path_id), schedule_msg(body))
-        v = np.asarray(body["v_mps"])
-        self.log.info("%s schedule v%d (from %s trial %d): %.2f-%.2f m/s; %s", path_id, body["version"], robot or "-",
-                      trial, v.min(), v.max(), "; ".join(body["notes"]) or "")
-        return body
+    def _store(self, path_id: str, proposal: Proposal, robot: str, trial: int) -> SpeedSchedule:
+        msg = self.db.add_schedule(path_id, proposal, robot, trial, time.time())
+        self.node.publish(keys.sched_schedule(path_id), msg)
+        v = np.asarray(msg.v_mps)
+        self.log.info("%s schedule v%d (from %s trial %d): %.2f-%.2f m/s; %s", path_id, msg.version, robot or "-",
+                      trial, v.min(), v.max(), "; ".join(msg.notes) or "")
+        return msg
 
-    def latest(self, path_id: str) -> dict:
-        body = self.db.latest(path_id)
-        if body is None:
+    def latest(self, path_id: str) -> SpeedSchedule:
+        schedule = self.db.latest(path_id)
+        if schedule is None:
             route = self._route(path_id)
             if route is None:
                 raise LookupError(f"no taught route {path_id!r} to schedule")
-            body = self._store(path_id, initial_schedule(route.s, route.poses[:, :2], self.params), "", 0)
-        return body
+            schedule = self._store(path_id, initial_schedule(route.s, route.poses[:, :2], self.params), "", 0)
+        return schedule
 
-    def _update(self, path_id: str, robot: str, trial: int) -> dict:
+    def _update(self, path_id: str, robot: str, trial: int) -> SpeedSchedule:
         done = self.db.based_on(path_id, robot, trial)
         if done is not None:
             return done
@@ -187,7 +178,7 @@ class SchedulerService(Service):
         prev = self.latest(path_id)
         self.db.save_passes(path_id, robot, trial, version, collector.passes)
         failed = failure_speeds(self.db.history(path_id), self.params) if self.params.use_all_trials else None
-        proposal = next_schedule(np.asarray(prev["v_mps"]), collector.passes, route.s, route.poses[:, :2],
+        proposal = next_schedule(np.asarray(prev.v_mps), collector.passes, route.s, route.poses[:, :2],
                                  self.params, failed)
         return self._store(path_id, proposal, robot, trial)
 
@@ -205,7 +196,7 @@ class SchedulerService(Service):
             query.drop()
 
     def _on_schedule_query(self, query: zenoh.Query) -> SpeedSchedule:
-        return schedule_msg(self.latest(check_name("path_id", str(query.key_expr).split("/")[2])))
+        return self.latest(check_name("path_id", str(query.key_expr).split("/")[2]))
 
     def _on_update_query(self, query: zenoh.Query) -> None:
         """Answered once the trial's passes are in (or it was scheduled already)."""
