@@ -28,7 +28,7 @@ import numpy as np
 
 from bench.closed_loop import ClosedLoop
 from bench.report import run_and_print, single_core
-from common.messages import Experience, HyperDim, HyperMsg
+from common.messages import Experience, HyperMsg
 from common.scenario import TerrainPatch
 from services.controller.corridor import Corridor
 from services.controller.gauss_newton import gauss_newton
