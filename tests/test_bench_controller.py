@@ -10,6 +10,7 @@ from bench import controller
 pytestmark = pytest.mark.integration
 
 
+@pytest.mark.slow
 def test_bench_controller_reports_the_design_keys(capsys):
     assert controller.main(["--keep-every", "300"]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

@@ -10,6 +10,7 @@ from bench import gp as bench_gp
 pytest.importorskip("sklearn")
 
 
+@pytest.mark.slow
 def test_bench_gp_reports_a_fit_within_2_percent_of_sklearn(capsys):
     assert bench_gp.main(["--n", "300", "--restarts", "1"]) == 0
     out = capsys.readouterr().out.strip().splitlines()

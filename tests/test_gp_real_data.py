@@ -90,6 +90,7 @@ def test_inverse_steering_matches_eq_5_27():
     assert _w_from_steering(np.array(v), np.array(delta)) == pytest.approx(w)
 
 
+@pytest.mark.slow
 def test_gp_learned_on_ds3_cuts_heading_rate_residual_on_ds4():
     if not (DATA / "DS3").is_dir() or not (DATA / "DS4").is_dir():
         pytest.skip(f"real F1/10 data not found at {DATA}")

@@ -27,6 +27,7 @@ def run(tmp_path, scenario_file, data: dict) -> list[dict]:
     return json.loads((out / "summary.json").read_text())["trials"]
 
 
+@pytest.mark.slow
 def test_ilc_experiment_1_cuts_max_errors_by_2_5_by_trial_6(tmp_path, scenario_file):
     trials = run(tmp_path, scenario_file, {
         "name": "ilc1", "seed": 1, "robot": {"preset": "husky"},
@@ -41,6 +42,7 @@ def test_ilc_experiment_1_cuts_max_errors_by_2_5_by_trial_6(tmp_path, scenario_f
     assert (tmp_path / "ilc1" / "data" / "controller" / "ilc" / "ilc1.ilc").exists()
 
 
+@pytest.mark.slow
 def test_without_learning_ilc_keeps_no_feedforward_and_repeats_its_first_trial(tmp_path, scenario_file):
     trials = run(tmp_path, scenario_file, {
         "name": "ilc_off", "seed": 1, "robot": {"preset": "husky"},
@@ -58,6 +60,7 @@ LBNMPC = {"name": "lbnmpc1", "seed": 11, "robot": {"preset": "husky"},
           "controller": {"algorithm": "lb-nmpc"}, "trials": {"count": 5, "speed": 0.4}}
 
 
+@pytest.mark.slow
 def test_lb_nmpc_experiment_1_cuts_max_lateral_error_by_60_percent_and_keeps_it(tmp_path, scenario_file):
     trials = run(tmp_path, scenario_file, LBNMPC)
     lat = [t["max_lateral_m"] for t in trials]
@@ -73,6 +76,7 @@ def test_lb_nmpc_experiment_1_cuts_max_lateral_error_by_60_percent_and_keeps_it(
         "heading_rate_residual_rmse_nominal_radps"]
 
 
+@pytest.mark.slow
 def test_without_learning_lb_nmpc_repeats_its_first_trial(tmp_path, scenario_file):
     data = dict(LBNMPC, name="lbnmpc_off", trials={"count": 3, "speed": 0.4, "learning": False})
     lat = [t["max_lateral_m"] for t in run(tmp_path, scenario_file, data)]

@@ -4,6 +4,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 
 from common.gp import GaussianProcess, SEHyper, fit_hyperparameters
 from common.path import Path
@@ -202,6 +203,7 @@ def learned_model(runs):
     return GaussianProcess(D[:, :3], D[:, 3:], fit.hypers)
 
 
+@pytest.mark.slow
 def test_illustrative_example_feedback_worse_than_nmpc_worse_than_lb_nmpc():
     """Learning over trials: the NMPC's run, then LB-NMPC runs each learning from all runs before it.
     (From the NMPC run alone the model is poor off that run's inputs: there the input always

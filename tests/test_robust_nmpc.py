@@ -410,6 +410,7 @@ def test_rc_lb_nmpc_starting_outside_the_corridor_stops_and_says_why(tmp_path, s
     assert trial["distance_m"] < 0.5
 
 
+@pytest.mark.slow
 @pytest.mark.integration
 def test_localization_delay_compensation_lowers_the_lateral_error(tmp_path, scenario_file):
     """Thesis eq. 7.12 through the real services: with estimates 0.3 s old, RC-LB-NMPC started from the
@@ -426,6 +427,7 @@ def test_localization_delay_compensation_lowers_the_lateral_error(tmp_path, scen
     assert out[True]["max_lateral_m"] < 0.8 * out[False]["max_lateral_m"], (out[True], out[False])
 
 
+@pytest.mark.slow
 @pytest.mark.integration
 def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c_lb_nmpc_leaves_it(
         tmp_path, scenario_file):
@@ -446,6 +448,7 @@ def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c
     assert c["constraint_violations"] > 0 or "outside the corridor" in c["end_reason"], c
 
 
+@pytest.mark.slow
 @pytest.mark.integration
 def test_thesis_experiment_2_grizzly_in_ruts_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c_lb_nmpc_leaves_it(
         tmp_path, scenario_file):
@@ -464,6 +467,7 @@ def test_thesis_experiment_2_grizzly_in_ruts_rc_lb_nmpc_keeps_the_corridor_and_s
     assert c["constraint_violations"] > 0 or "outside the corridor" in c["end_reason"], c
 
 
+@pytest.mark.slow
 @pytest.mark.integration
 def test_thesis_min_max_experiment_lowers_the_first_trials_worst_lateral_error_below_lb_nmpcs(
         tmp_path, scenario_file):

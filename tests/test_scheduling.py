@@ -23,6 +23,7 @@ def run(out: pathlib.Path, scenario: pathlib.Path) -> list[dict]:
     return json.loads((out / "summary.json").read_text())["trials"]
 
 
+@pytest.mark.slow
 def test_thesis_4_3_mats_cuts_travel_time_by_40_percent_within_the_limits(tmp_path):
     """~100 m, 10 trials, v_init 0.5, v_max 2.0; lateral < 0.15 m, heading < 10 deg, |w| < 1 rad/s."""
     sc = load_scenario(EXAMPLES / "sched-mats.toml")
@@ -47,6 +48,7 @@ def test_thesis_4_3_mats_cuts_travel_time_by_40_percent_within_the_limits(tmp_pa
     assert versions == sorted(versions) and len(set(versions)) == 10
 
 
+@pytest.mark.slow
 def test_scheduler_with_lb_nmpc_rises_speeds_and_lowers_errors(tmp_path):
     """Thesis 5.4.4 (roc6, 60 m loop): speeds rise from 0.35 m/s while the learned model brings the
     errors below trial 1's, which ran at a third of the speed without experience."""

@@ -15,6 +15,7 @@ from deploy.experiment import run_experiment
 pytestmark = pytest.mark.integration
 
 
+@pytest.mark.slow
 def test_a_route_taught_and_repeated_on_vision(tmp_path, scenario_file):
     out = tmp_path / "out"
     run_experiment(scenario_file({

@@ -21,6 +21,8 @@ from services.localizer.vision_source import VisionSource
 WAYPOINTS = [[0.0, 0.0], [6.0, 0.0], [11.0, 3.0], [16.0, 3.0]]
 STEP_M = 0.05           # 0.5 m/s at 10 Hz
 
+pytestmark = pytest.mark.slow   # the module's taught route is rendered and localized frame by frame
+
 
 @pytest.fixture(scope="module")
 def taught(tmp_path_factory):
