@@ -89,6 +89,17 @@ def coerce(tp: Any, value: Any, where: str = "", *, require_all: bool = False) -
         if not isinstance(value, (bytes, bytearray)):
             _fail(where, f"expected bytes, got {type(value).__name__}")
         return bytes(value)
+    if origin in (list, tuple, dict):
+        return _coerce_container(origin, tp, value, where, require_all)
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        return from_dict(tp, value, where, require_all=require_all)
+    raise TypeError(f"{where}: unsupported annotation {tp!r}")
+
+
+def _coerce_container(origin: Any, tp: Any, value: Any, where: str, require_all: bool) -> Any:
+    """coerce() for list[...], tuple[...] and dict[...]."""
     if origin is list:
         (item_tp,) = typing.get_args(tp)
         if not isinstance(value, (list, tuple)):
@@ -115,11 +126,6 @@ def coerce(tp: Any, value: Any, where: str = "", *, require_all: bool = False) -
             _fail(where, f"expected a table/map, got {_describe(value)}")
         return {coerce(key_tp, k, f"{where}.<key>"): coerce(val_tp, v, f"{where}.{k}", require_all=require_all)
                 for k, v in value.items()}
-    if dataclasses.is_dataclass(tp):
-        if isinstance(value, tp):
-            return value
-        return from_dict(tp, value, where, require_all=require_all)
-    raise TypeError(f"{where}: unsupported annotation {tp!r}")
 
 
 def _plain_numbers(item_tp: Any, value: list | tuple) -> list | None:
