@@ -50,8 +50,9 @@ from typing import Callable
 import numpy as np
 import zenoh
 
-from common import keys
 from bench.report import run_and_print
+from common import keys
+from common.bins import BinPolicy
 from common.bus import AliveWatcher, Node, query_one, setup_logging
 from common.codec import DecodeError, decode
 from common.config import dump_toml
@@ -286,14 +287,37 @@ def query_windows(session: zenoh.Session, bins: list[tuple[int, int]], v_bin: fl
             "window_size_mean": round(statistics.fmean(sizes), 2), "window_size_max": max(sizes)}
 
 
-def run_bench(args: argparse.Namespace) -> dict:
-    from deploy.launcher import Launcher
-    from deploy.router import free_port
-    from common.bins import BinPolicy
+def _write_rig_files(base: FsPath, vertices: int, bins: BinPolicy) -> FsPath:
+    """A straight taught route and the localizer's and store's configs under `base`; the DB's path."""
     from services.gp_store.config import FitConfig, StoreConfig
     from services.localizer.config import LocalizerConfig
     from services.localizer.routes import RouteStore
 
+    poses = np.column_stack([np.arange(vertices) * SPACING_M, np.zeros(vertices), np.zeros(vertices)])
+    RouteStore(base / "data" / "routes").save(Path(PATH_ID, poses, spacing_m=SPACING_M), 0.0)
+    (base / "loc.toml").write_text(dump_toml(LocalizerConfig(robot_name=ROBOT, data_dir=str(base / "data"))))
+    db_path = base / "data" / "experiences.db"
+    (base / "store.toml").write_text(dump_toml(StoreConfig(
+        name="bench", db_path=str(db_path), bins=bins, fit=FitConfig(auto_after_trial=False))))
+    return db_path
+
+
+def _wait_for_rig(node, watcher, launcher, vertices: int) -> None:
+    """Until the localizer and the store are alive and the route is served."""
+    want = {keys.alive(ROBOT, "localizer"), keys.alive(keys.STORE_ROBOT, "gp_store")}
+    wait_until(lambda: watcher.wait_for(lambda alive: want <= alive, 0.5), "localizer and gp_store", launcher)
+
+    def route_served() -> bool:
+        try:
+            return len(query_one(node.session, keys.route(PATH_ID), RouteMsg, timeout_s=1.0).x_m) == vertices
+        except LookupError:
+            return False
+    wait_until(route_served, "route on lbc/paths", launcher)
+
+
+def run_bench(args: argparse.Namespace) -> dict:
+    from deploy.launcher import Launcher
+    from deploy.router import free_port
     bins_cfg = BinPolicy()   # thesis defaults
     rng = np.random.default_rng(args.seed)
     log.info("generating %d experiences on a %d-vertex route", args.n, args.vertices)
@@ -302,13 +326,7 @@ def run_bench(args: argparse.Namespace) -> dict:
 
     with tempfile.TemporaryDirectory(prefix="lbc-bench-store-") as tmp:
         base = FsPath(tmp)
-        poses = np.column_stack([np.arange(args.vertices) * SPACING_M, np.zeros(args.vertices),
-                                 np.zeros(args.vertices)])
-        RouteStore(base / "data" / "routes").save(Path(PATH_ID, poses, spacing_m=SPACING_M), 0.0)
-        (base / "loc.toml").write_text(dump_toml(LocalizerConfig(robot_name=ROBOT, data_dir=str(base / "data"))))
-        db_path = base / "data" / "experiences.db"
-        (base / "store.toml").write_text(dump_toml(StoreConfig(
-            name="bench", db_path=str(db_path), bins=bins_cfg, fit=FitConfig(auto_after_trial=False))))
+        db_path = _write_rig_files(base, args.vertices, bins_cfg)
         port = free_port()
         endpoint = f"tcp/127.0.0.1:{port}"
         launcher = Launcher(endpoint, base / "logs")
@@ -319,16 +337,8 @@ def run_bench(args: argparse.Namespace) -> dict:
             launcher.start_service("localizer", base / "loc.toml", args.service_log_level)
             launcher.start_service("gp_store", base / "store.toml", args.service_log_level)
             node = connect_node(endpoint, launcher)
-            want = {keys.alive(ROBOT, "localizer"), keys.alive(keys.STORE_ROBOT, "gp_store")}
             watcher = AliveWatcher(node.session, f"{keys.ROOT}/alive/**")
-            wait_until(lambda: watcher.wait_for(lambda alive: want <= alive, 0.5), "localizer and gp_store", launcher)
-
-            def route_served() -> bool:
-                try:
-                    return len(query_one(node.session, keys.route(PATH_ID), RouteMsg, timeout_s=1.0).x_m) == args.vertices
-                except LookupError:
-                    return False
-            wait_until(route_served, "route on lbc/paths", launcher)
+            _wait_for_rig(node, watcher, launcher, args.vertices)
             log.info("rig up in %.1f s (router %s)", time.perf_counter() - t_setup, endpoint)
             store_pid = next(c.proc.pid for c in launcher.children if c.name == "gp_store")
             rss_idle = proc_status_mb(store_pid).get("VmRSS", float("nan"))
