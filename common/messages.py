@@ -111,7 +111,9 @@ LocStatus = Literal["ok", "vo", "dropout", "lost", "initializing", "teach", "idl
 
 @dataclass(frozen=True, kw_only=True)
 class LocState(Message):
-    """Localizer output, one per sensor tick. No pose unless status is 'ok' or 'vo' (never a made-up one)."""
+    """Localizer output, one per sensor tick. No pose unless status is 'ok' or 'vo' (never a made-up one);
+    during teach ('teach') a source may give the pose relative to the newest vertex, which is not for
+    tracking (the route is still being made) but lets the controller identify its nominal model."""
     SCHEMA_VERSION = 2
     stamp_s: float
     capture_stamp_s: float
@@ -189,6 +191,43 @@ class ControllerStatus(Message):
     sigma_lat_m: float
     sigma_head_rad: float
     solver_status: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class NominalModel(Message):
+    """The controller's nominal model of one robot, identified from a teach pass (drive lags against
+    the wheel odometry, the a-priori uncertainty from the model's residuals on that pass)."""
+    stamp_s: float
+    robot: str
+    path_id: str                      # the teach pass it was identified on
+    dt_s: float
+    model_tag: str                    # the name experiences of this model carry (Experience.model)
+    tau_v_s: float                    # first-order lag of each drive channel ...
+    tau_w_s: float
+    dead_time_v_s: float              # ... its dead time (whole periods) ...
+    dead_time_w_s: float
+    gain_v: float                     # ... and its steady-state gain (reported, not modelled)
+    gain_w: float
+    fit_rmse_v_mps: float             # one-step prediction error of the fits
+    fit_rmse_w_radps: float
+    samples_v: int
+    samples_w: int
+    actuator_tau_s: tuple[float, float]   # the lags the NMPC uses: lag + dead time per channel
+    prior_std_base: tuple[float, float, float]       # uncertainty.PriorStd, body frame (along, lateral, heading)
+    prior_std_per_mps: tuple[float, float, float]
+    prior_std_per_radps: tuple[float, float, float]
+    prior_scale: tuple[float, float, float]          # of the default prior's shape, from the teach residuals
+    residual_samples: int
+    notes: list[str]                  # what could not be identified, and what was kept instead
+
+    def __post_init__(self):
+        check_name("robot", self.robot)
+        check_name("path_id", self.path_id)
+        check_name("model_tag", self.model_tag)
+        if self.dt_s <= 0 or min(self.tau_v_s, self.tau_w_s, self.dead_time_v_s, self.dead_time_w_s,
+                                 *self.actuator_tau_s, *self.prior_std_base, *self.prior_std_per_mps,
+                                 *self.prior_std_per_radps) < 0:
+            raise ValueError("dt_s > 0 and non-negative time constants, dead times and prior std required")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -167,6 +167,7 @@ class RouteRecorder:
             raise ValueError("spacing_m must be > 0")
         self.spacing_m = spacing_m
         self.vertices: list[tuple[float, float, float]] = []
+        self.length_m = 0.0        # along the vertices so far
 
     def add(self, T_world_robot) -> bool:
         x, y, th = (float(v) for v in T_world_robot)
@@ -174,8 +175,10 @@ class RouteRecorder:
             self.vertices.append((x, y, th))
             return True
         lx, ly, _ = self.vertices[-1]
-        if np.hypot(x - lx, y - ly) >= self.spacing_m:
+        step = float(np.hypot(x - lx, y - ly))
+        if step >= self.spacing_m:
             self.vertices.append((x, y, th))
+            self.length_m += step
             return True
         return False
 

@@ -63,6 +63,7 @@ class PoseSource:
         self.path = None
         self.trial = trial
         self._buffer.clear()
+        self._error = self._std() * self.rng.standard_normal(3)
 
     def finish_teach(self, path_id: str, loop: bool, taught_by: str) -> Path:
         if self.recorder is None:
@@ -86,8 +87,7 @@ class PoseSource:
         pose = (truth.x_world_m, truth.y_world_m, truth.theta_world_rad)
         if self.recorder is not None:
             self.recorder.add(pose)
-            return self._no_pose(truth, path_id, "teach", f"teaching: {len(self.recorder.vertices)} vertices",
-                                 truth, len(self.recorder.vertices) - 1)
+            return self._teach_state(truth, path_id)
         if self.path is None:
             return self._no_pose(truth, path_id, "idle", "no route loaded", truth, 0)
         self._buffer.append(truth)
@@ -100,27 +100,45 @@ class PoseSource:
                 self._dropout_left = self.cfg.dropout_ticks
             self._dropout_left -= 1
             return self._no_pose(truth, path_id, "dropout", "no estimate this frame", captured, self._hint or 0)
-        # Gauss-Markov error: e <- a e + sqrt(1 - a^2) sigma n keeps the std at sigma
-        a = math.exp(-self.cfg.period_s / self.cfg.noise_tau_s) if self.cfg.noise_tau_s > 0 else 0.0
-        self._error = a * self._error + math.sqrt(1.0 - a * a) * self._std() * self.rng.standard_normal(3)
-        jitter = np.array([self.cfg.jitter_m, self.cfg.jitter_m, 0.0]) * self.rng.standard_normal(3)
-        err = self._error + jitter
-        noisy = np.array([captured.x_world_m + err[0], captured.y_world_m + err[1],
-                          float(se2.wrap(captured.theta_world_rad + err[2]))])
+        noisy = self._noisy(captured)
         vertex, T_vr = self.path.localize(noisy, self._hint)
         self._hint = vertex
         along = float(self.path.s[vertex] + T_vr[0])
         for at_m, length_m, lateral_m in self.cfg.jumps:
             if at_m <= along < at_m + length_m:
                 T_vr = T_vr + np.array([0.0, lateral_m, 0.0])
-        # the error is isotropic in position, so its covariance is the same in the vertex frame
-        sp2 = self.cfg.noise_m ** 2 + self.cfg.jitter_m ** 2
-        cov = np.diag([sp2, sp2, self.cfg.noise_heading_rad ** 2])
+        cov = self._cov()
         return LocState(stamp_s=truth.stamp_s, capture_stamp_s=captured.stamp_s, tick=truth.tick,
                         capture_tick=captured.tick, trial=self.trial, path_id=path_id, source="pose", status="ok", reason="",
                         vertex=vertex, distance_m=float(self.path.s[vertex] + T_vr[0]),
                         T_vertex_robot=tuple(float(v) for v in T_vr),
                         cov_T_vertex_robot=tuple(float(v) for v in cov.ravel()), matched_features=None)
+
+    def _noisy(self, truth: TruthPose) -> np.ndarray:
+        """The truth with this source's error: a Gauss-Markov wander (e <- a e + sqrt(1 - a^2) sigma n
+        keeps its std at sigma) plus independent jitter."""
+        a = math.exp(-self.cfg.period_s / self.cfg.noise_tau_s) if self.cfg.noise_tau_s > 0 else 0.0
+        self._error = a * self._error + math.sqrt(1.0 - a * a) * self._std() * self.rng.standard_normal(3)
+        jitter = np.array([self.cfg.jitter_m, self.cfg.jitter_m, 0.0]) * self.rng.standard_normal(3)
+        err = self._error + jitter
+        return np.array([truth.x_world_m + err[0], truth.y_world_m + err[1],
+                         float(se2.wrap(truth.theta_world_rad + err[2]))])
+
+    def _cov(self) -> np.ndarray:
+        # the error is isotropic in position, so its covariance is the same in any vertex frame
+        sp2 = self.cfg.noise_m ** 2 + self.cfg.jitter_m ** 2
+        return np.diag([sp2, sp2, self.cfg.noise_heading_rad ** 2])
+
+    def _teach_state(self, truth: TruthPose, path_id: str) -> LocState:
+        """During teach: the estimate relative to the newest vertex, as VT&R's odometry gives it (status
+        'teach': not for tracking; the controller identifies its nominal model with it)."""
+        vertex = len(self.recorder.vertices) - 1
+        T_vr = se2.between(np.asarray(self.recorder.vertices[vertex]), self._noisy(truth))
+        return LocState(stamp_s=truth.stamp_s, capture_stamp_s=truth.stamp_s, tick=truth.tick,
+                        capture_tick=truth.tick, trial=self.trial, path_id=path_id, source="pose", status="teach",
+                        reason=f"teaching: {vertex + 1} vertices", vertex=vertex,
+                        distance_m=self.recorder.length_m + float(T_vr[0]), T_vertex_robot=tuple(float(v) for v in T_vr),
+                        cov_T_vertex_robot=tuple(float(v) for v in self._cov().ravel()), matched_features=None)
 
     def _std(self) -> np.ndarray:
         return np.array([self.cfg.noise_m, self.cfg.noise_m, self.cfg.noise_heading_rad])

@@ -1,0 +1,202 @@
+"""The nominal model identified from the teach pass, instead of asked for.
+
+Drive channels. Per channel (v, w) the command u_k held over period k against the wheel odometry y_k
+(the drive's achieved speed at tick k, blind to ground slip) is fitted as a first-order lag with gain K,
+time constant tau and dead time d periods, in discrete time (an ARX model):
+
+    y_{k+1} = a y_k + b u_{k-d},        a = exp(-dt / tau),   K = b / (1 - a)
+
+by linear least squares for every d = 0..max_dead; the d with the smallest residual wins (the smaller d
+on a near tie). The NMPC's nominal model is a first-order lag (actuator.py): the dead time is folded into
+its time constant, tau + d dt (e^{-theta s} ~ 1 / (1 + theta s) to first order); the gain is reported,
+not modelled (slip against the ground is the learned disturbance's business). An Ackermann robot's
+turn rate follows its speed (eq. 5.27), so w is fitted only where the robot is moving.
+
+A-priori uncertainty. The identified model's one-period residuals on the teach pass, g_k (eq. 5.17,
+body frame, from the teach pass's pose estimates and the commands), give its scale: the prior keeps
+the shape std = base + per_mps |v| + per_radps |w| (uncertainty.PriorStd: errors grow with the distance
+and the turn of a period) and each component is scaled so that the residuals have unit RMS against it,
+c_i^2 = mean(g_i^2 / std_i^2), the maximum-likelihood scale of a Gaussian. One teach speed cannot
+separate the speed dependence from the base, so the shape stays an assumption and the level is measured;
+the controller's online check (calibration.py) corrects the level further while it drives. The
+localization noise between consecutive estimates counts in, which errs on the cautious side.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.messages import LocState, NominalModel
+from common.path import Path
+from services.controller.actuator import ActuatorLag
+from services.controller.experience import ExperienceBuilder
+from services.controller.uncertainty import PriorStd
+
+MAX_DEAD_PERIODS = 5
+MIN_SAMPLES = 20
+# a channel whose command hardly changed says nothing about its dynamics
+MIN_EXCITATION = {"v": 0.01, "w": 0.01}     # m/s, rad/s (std of the command)
+
+
+@dataclass(frozen=True)
+class ChannelFit:
+    tau_s: float          # first-order time constant
+    dead_time_s: float    # whole periods
+    gain: float
+    rmse: float           # one-step prediction error of the fit (m/s or rad/s)
+    samples: int
+
+    @property
+    def model_tau_s(self) -> float:
+        """The time constant the first-order nominal model uses: lag and dead time together."""
+        return self.tau_s + self.dead_time_s
+
+
+def fit_channel(u: np.ndarray, y: np.ndarray, dt: float, use: np.ndarray | None = None,
+                max_dead: int = MAX_DEAD_PERIODS) -> ChannelFit | None:
+    """ARX fit of one channel; u[k] held over period k, y[k] measured at tick k (NaN: missing).
+    `use[k]`: whether the step k -> k+1 may enter the fit. None when the data cannot identify it."""
+    u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    best = None
+    for d in range(max_dead + 1):
+        k = np.arange(d, len(y) - 1)
+        ok = np.isfinite(y[k]) & np.isfinite(y[k + 1]) & np.isfinite(u[k - d])
+        if use is not None:
+            ok &= use[k]
+        k = k[ok]
+        if len(k) < MIN_SAMPLES:
+            continue
+        X = np.column_stack([y[k], u[k - d]])
+        coef, *_ = np.linalg.lstsq(X, y[k + 1], rcond=None)
+        rmse = float(np.sqrt(np.mean((X @ coef - y[k + 1]) ** 2)))
+        if best is None or rmse < best[0] * (1.0 - 1e-3):
+            best = (rmse, d, coef, len(k))
+    if best is None:
+        return None
+    rmse, d, (a, b), n = best
+    if not (0.0 <= a < 1.0) or abs(1.0 - a) < 1e-9:
+        return None            # no stable first-order response in these data
+    tau = 0.0 if a <= 0.0 else -dt / math.log(a)
+    return ChannelFit(tau_s=tau, dead_time_s=d * dt, gain=float(b / (1.0 - a)), rmse=rmse, samples=n)
+
+
+class TeachRecorder:
+    """Collects, per tick of the teach pass: the command held from the tick on, the wheel odometry at
+    the tick, and the pose estimate relative to the newest vertex when the localizer gives one."""
+
+    def __init__(self, dt: float):
+        self.dt = dt
+        self.u: dict[int, tuple[float, float]] = {}
+        self.y: dict[int, tuple[float, float]] = {}
+        self.estimates: dict[int, LocState] = {}
+
+    def add_applied(self, tick: int, v_mps: float, w_radps: float) -> None:
+        """The bridge's status at `tick` reports the command held over the period that ends there."""
+        if tick > 0:
+            self.u[tick - 1] = (v_mps, w_radps)
+
+    def add_odometry(self, tick: int, v_mps: float, w_radps: float) -> None:
+        self.y[tick] = (v_mps, w_radps)
+
+    def add_estimate(self, loc: LocState) -> None:
+        if loc.T_vertex_robot is not None:
+            self.estimates[loc.capture_tick] = loc
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(u, y), each (n, 2) over the ticks seen, NaN where missing."""
+        ticks = sorted(set(self.u) | set(self.y))
+        if not ticks:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        t0, n = ticks[0], ticks[-1] - ticks[0] + 1
+        u, y = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
+        for t, val in self.u.items():
+            u[t - t0] = val
+        for t, val in self.y.items():
+            y[t - t0] = val
+        return u, y
+
+
+@dataclass(frozen=True)
+class DriveFit:
+    v: ChannelFit | None
+    w: ChannelFit | None
+    notes: tuple[str, ...]
+
+    def lag(self, dt: float) -> ActuatorLag:
+        return ActuatorLag(self.v.model_tau_s if self.v else 0.0, self.w.model_tau_s if self.w else 0.0, dt)
+
+
+def identify_drive(u: np.ndarray, y: np.ndarray, dt: float) -> DriveFit:
+    """Both channels; a channel that cannot be identified keeps no lag, and the notes say why."""
+    notes = []
+    moving = np.abs(y[:, 0]) > 0.1 * max(float(np.nanmax(np.abs(y[:, 0]), initial=0.0)), 1e-6)
+    fits = {}
+    for i, name in enumerate(("v", "w")):
+        excitation = float(np.nanstd(u[:, i])) if np.isfinite(u[:, i]).any() else 0.0
+        fit = None
+        if excitation < MIN_EXCITATION[name]:
+            notes.append(f"{name}: the command hardly changed during teach (std {excitation:.3f}): no lag identified")
+        else:
+            fit = fit_channel(u[:, i], y[:, i], dt, use=None if name == "v" else moving)
+            if fit is None:
+                notes.append(f"{name}: no stable first-order response in the teach data: no lag identified")
+        fits[name] = fit
+    return DriveFit(fits["v"], fits["w"], tuple(notes))
+
+
+def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> tuple[np.ndarray, np.ndarray]:
+    """The nominal model's one-period residuals g (m, 3) on the teach pass and the commands (m, 2) they
+    were driven with, from the teach estimates (made relative to the taught route)."""
+    builder = ExperienceBuilder(path, rec.dt, lag=lag)
+    G, U = [], []
+    for tick in sorted(rec.estimates):
+        loc = rec.estimates[tick]
+        if loc.vertex >= len(path):
+            continue
+        for t in range(tick - lag.history_periods - 2, tick + 1):
+            if t in rec.u and builder.command_at(t) is None:
+                builder.add_command(t, *rec.u[t])
+        obs = builder.add_estimate(tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
+        if obs is not None:
+            G.append(obs.g)
+            U.append(obs.a[5:7])
+    return np.array(G, dtype=float).reshape(-1, 3), np.array(U, dtype=float).reshape(-1, 2)
+
+
+def scaled_prior(G: np.ndarray, U: np.ndarray, shape: PriorStd = PriorStd()) -> tuple[PriorStd, np.ndarray]:
+    """The prior of `shape` scaled per component so the residuals have unit RMS against it; and the scales."""
+    std0 = (np.asarray(shape.base) + np.outer(np.abs(U[:, 0]), shape.per_mps)
+            + np.outer(np.abs(U[:, 1]), shape.per_radps))
+    scale = np.sqrt(np.mean((G / std0) ** 2, axis=0))
+    c = tuple(float(x) for x in scale)
+    prior = PriorStd(base=tuple(b * s for b, s in zip(shape.base, c)),
+                     per_mps=tuple(p * s for p, s in zip(shape.per_mps, c)),
+                     per_radps=tuple(p * s for p, s in zip(shape.per_radps, c)))
+    return prior, scale
+
+
+def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd()) -> NominalModel:
+    """The nominal model of the robot that drove this teach pass, as the controller will use it."""
+    u, y = rec.arrays()
+    drive = identify_drive(u, y, rec.dt)
+    lag = drive.lag(rec.dt)
+    G, U = teach_residuals(rec, path, lag)
+    notes = list(drive.notes)
+    if len(G) >= MIN_SAMPLES:
+        prior, scale = scaled_prior(G, U, shape)
+    else:
+        prior, scale = shape, np.ones(3)
+        notes.append(f"only {len(G)} teach residuals (no teach pose estimates?): the default prior is kept")
+    fit = lambda c, attr, default: getattr(c, attr) if c is not None else default   # noqa: E731
+    return NominalModel(
+        stamp_s=stamp_s, robot=robot, path_id=path.path_id, dt_s=rec.dt, model_tag=lag.model_tag,
+        tau_v_s=fit(drive.v, "tau_s", 0.0), tau_w_s=fit(drive.w, "tau_s", 0.0),
+        dead_time_v_s=fit(drive.v, "dead_time_s", 0.0), dead_time_w_s=fit(drive.w, "dead_time_s", 0.0),
+        gain_v=fit(drive.v, "gain", 1.0), gain_w=fit(drive.w, "gain", 1.0),
+        fit_rmse_v_mps=fit(drive.v, "rmse", 0.0), fit_rmse_w_radps=fit(drive.w, "rmse", 0.0),
+        samples_v=fit(drive.v, "samples", 0), samples_w=fit(drive.w, "samples", 0),
+        actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
+        prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
+        residual_samples=len(G), notes=notes)
