@@ -60,6 +60,8 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
     if sc.scheduler.enabled:
         params = {k: v for k, v in to_dict(sc.scheduler).items() if k != "enabled"}
         params["v_max"] = min(params["v_max"], rp.v_max_mps)    # the robot's own limit is an a-priori one
+        # the robot's turn-rate limit, for the scheduler's guard; a w_max written in [scheduler] is a ceiling
+        params["w_max"] = rp.w_max_radps if params.get("w_max") is None else min(params["w_max"], rp.w_max_radps)
         configs["scheduler"] = SchedulerConfig(name="scheduler1", db_path=str(Path(data_dir) / "schedules.db"),
                                                params=SchedulerParams(**params), auto_after_trial=False)
     return configs

@@ -145,3 +145,202 @@ def test_the_database_keeps_schedules_as_messages_and_loads_bodies_written_as_di
     [(v, kept)] = db.history("r")
     assert v.tolist() == first.v_mps and np.array_equal(kept.e_lat_m, pa.e_lat_m, equal_nan=True)
     db.close()
+
+
+# --- the guard (services/scheduler/core.py, module doc G1-G3), worked by hand -----------------------------
+from services.scheduler.core import (GuardCaps, apply_guard, growth_cap, guard_caps, guard_limits,  # noqa: E402
+                                     neighbourhoods, plan, worst_nearby)
+
+
+def straight(n: int, spacing: float = 1.0):
+    s = np.arange(n) * spacing
+    return s, np.column_stack([s, np.zeros(n)])
+
+
+def no_limits(**kw) -> SchedulerParams:
+    """Eq. 4.3-4.4 out of the way (no start/end segments, no acceleration limits, no pruning)."""
+    base = dict(v_init=0.5, v_max=3.0, gamma1=0.2, gamma2=0.24, v_start=3.0, start_m=0.0, v_end=3.0, end_m=0.0,
+                a_max=100.0, a_min=-100.0, prune_min_m=0.0)
+    return SchedulerParams(**{**base, **kw})
+
+
+def test_guard_limits_are_a_share_of_eq_4_2_thresholds_with_the_robots_turn_rate_limit():
+    p = SchedulerParams(lambda_L=0.5, lambda_H=20.0, lambda_omega=1.0, guard_share=0.8, w_max=1.2)
+    np.testing.assert_allclose(guard_limits(p), [0.4, 0.8 * math.radians(20.0), 0.8])
+    # a lambda_omega above the robot's limit: the limit counts (0.8 * 1.2)
+    assert guard_limits(SchedulerParams(lambda_omega=1.5, w_max=1.2))[2] == pytest.approx(0.96)
+    assert guard_limits(SchedulerParams(lambda_omega=1.5))[2] == pytest.approx(1.2)   # w_max unknown
+
+
+def test_proportional_growth_caps_the_turn_that_overshot():
+    """The turn of issue 18: 0.86 rad/s at 0.7 m/s, limit 1.2 rad/s. Eq. 4.2 (lambda_omega = 1.5 here)
+    raises it to 0.9 m/s, where w = 0.86 * 0.9 / 0.7 = 1.106 rad/s; the guard allows w <= 0.8 * 1.2 = 0.96,
+    reached at v = 0.96 * 0.7 / 0.86 = 0.7814 m/s."""
+    cap = growth_cap(np.array([[0.7]]), np.array([[0.86]]), 0.96, 0.1)
+    assert cap[0] == pytest.approx(0.96 * 0.7 / 0.86) == pytest.approx(0.78140, abs=1e-5)
+    # with lambda_omega = 1.0 (the thesis's), the bound is 0.8 * 1.0: no raise above 0.8 * 0.7 / 0.86 = 0.651
+    assert growth_cap(np.array([[0.7]]), np.array([[0.86]]), 0.8, 0.1)[0] == pytest.approx(0.65116, abs=1e-5)
+    # nothing seen, or a zero turn rate: nothing to cap
+    assert np.isinf(growth_cap(np.array([[np.nan]]), np.array([[np.nan]]), 0.8, 0.1)[0])
+    assert np.isinf(growth_cap(np.array([[0.7]]), np.array([[0.0]]), 0.8, 0.1)[0])
+
+
+def test_a_line_rising_faster_than_proportional_caps_lower():
+    """Lateral errors 0.05, 0.09, 0.17 m at 0.5, 0.7, 0.9 m/s, bound 0.24 m. Proportional from the latest:
+    0.24 * 0.9 / 0.17 = 1.2706. Least squares: mean v 0.7, mean e 0.10333; S_vv = 0.08,
+    S_ve = (-0.2)(-0.05333) + 0.2 * 0.06667 = 0.024, slope 0.3; e = 0.24 at 0.7 + 0.13667 / 0.3 = 1.1556."""
+    V = np.array([[0.5], [0.7], [0.9]])
+    E = np.array([[0.05], [0.09], [0.17]])
+    assert growth_cap(V, E, 0.24, 0.1)[0] == pytest.approx(0.7 + (0.24 - 0.31 / 3) / 0.3) == pytest.approx(1.15556,
+                                                                                                      abs=1e-5)
+    assert growth_cap(V[2:], E[2:], 0.24, 0.1)[0] == pytest.approx(0.24 * 0.9 / 0.17)
+    # speeds closer than min_spread (0.9, 0.95): no line, proportional from the latest (0.24 * 0.95 / 0.2)
+    assert growth_cap(np.array([[0.9], [0.95]]), np.array([[0.1], [0.2]]), 0.24, 0.1)[0] == pytest.approx(1.14)
+    # errors that fell with speed (learning): no line either; 0.24 * 0.7 / 0.1
+    assert growth_cap(np.array([[0.5], [0.7]]), np.array([[0.2], [0.1]]), 0.24, 0.1)[0] == pytest.approx(1.68)
+    # a vertex missed in the latest trial: its latest pass is the one before (0.24 * 0.7 / 0.12)
+    assert growth_cap(np.array([[0.7], [np.nan]]), np.array([[0.12], [np.nan]]), 0.24, 0.1)[0] == pytest.approx(1.4)
+
+
+def test_the_worst_pass_nearby_and_its_speed():
+    s = np.arange(5.0)                                 # 1 m apart, radius 1 m: a vertex and its two neighbours
+    lo, hi = neighbourhoods(s, 1.0)
+    assert lo.tolist() == [0, 0, 1, 2, 3] and hi.tolist() == [2, 3, 4, 5, 5]
+    worst, at_v = worst_nearby(np.array([0.1, -0.5, 0.2, np.nan, 0.3]), np.array([1.0, 2.0, 3.0, 4.0, 5.0]), lo, hi)
+    assert worst.tolist() == [0.5, 0.5, 0.5, 0.3, 0.3] and at_v.tolist() == [2.0, 2.0, 2.0, 5.0, 5.0]
+    worst, _ = worst_nearby(np.array([0.1, np.nan, np.nan, np.nan, np.nan]), np.ones(5), *neighbourhoods(s, 0.0))
+    assert worst[0] == 0.1 and np.all(np.isnan(worst[1:]))
+
+
+def test_the_guard_only_lowers_increases_and_never_below_the_last_speed():
+    prev = np.array([0.7, 0.7, 0.7, 0.7])
+    dec = np.array([INCREASE, INCREASE, INCREASE, DECREASE])
+    sugg = np.array([0.9, 0.9, 0.9, 0.46])
+    caps = GuardCaps(np.array([0.78, 0.5, np.inf, 0.1]), np.array([2, 0, -1, 0]))
+    out, note = apply_guard(sugg, prev, dec, caps)
+    np.testing.assert_allclose(out, [0.78, 0.7, 0.9, 0.46])
+    assert note == "guard: 2 increases capped (lateral error 1, turn rate 1), 1 of them kept at their speed"
+    out, note = apply_guard(sugg, prev, dec, GuardCaps(np.full(4, np.inf), np.full(4, -1)))
+    assert out.tolist() == sugg.tolist() and note == ""
+
+
+def passes_v(e_lat, e_head_deg, w, v):
+    pa = passes(e_lat, e_head_deg, w)
+    pa.v_mps = np.array(v, dtype=float)
+    return pa
+
+
+def test_a_sharp_turn_is_held_where_eq_4_2_alone_raises_it():
+    """21 vertices 1 m apart at 0.7 m/s; a turn at vertex 10 took 0.86 rad/s, 0.2 elsewhere; lambda_omega
+    1.0, w_max 1.2. Eq. 4.2 raises every vertex to 0.9. The guard: bound 0.8 * 1.0 = 0.8 rad/s; within
+    3 m of the turn the cap is 0.8 * 0.7 / 0.86 = 0.651 < 0.7: kept at 0.7; beyond, 0.8 * 0.7 / 0.2 = 2.8."""
+    n = 21
+    s, xy = straight(n)
+    w = np.full(n, 0.2)
+    w[10] = 0.86
+    pa = passes_v([0.02] * n, [1.0] * n, w, [0.7] * n)
+    prev = np.full(n, 0.7)
+    history = [(prev, pa)]
+    on = plan(prev, pa, history, s, xy, no_limits(w_max=1.2))
+    expect = np.where(np.abs(s - 10) <= 3.0, 0.7, 0.9)
+    np.testing.assert_allclose(on.schedule, expect)
+    assert on.decisions.tolist() == [INCREASE] * n        # eq. 4.2's decisions, reported as they were
+    assert on.caps.by[10] == 2 and on.caps.v_cap[10] == pytest.approx(0.8 * 0.7 / 0.86)
+    assert any(n_.startswith("guard: 7 increases capped (turn rate 7), 7 of them") for n_ in on.notes)
+    off = plan(prev, pa, history, s, xy, no_limits(w_max=1.2, guard=False))
+    np.testing.assert_allclose(off.schedule, 0.9)
+    assert off.caps is None and not any("guard" in n_ for n_ in off.notes)
+
+
+def test_with_the_guard_off_plan_is_the_thesis_rule():
+    """Eq. 4.2-4.5 unchanged: the worked trial-to-trial update of test_a_whole_trial_to_trial_update."""
+    n = 21
+    s = np.arange(n) * 0.5
+    xy = np.column_stack([s, np.zeros(n)])
+    p = SchedulerParams(v_init=0.5, v_max=2.0, gamma1=0.2, gamma2=0.24, v_start=0.4, start_m=1.0, v_end=0.4,
+                        end_m=1.0, a_max=10.0, a_min=-10.0, prune_min_m=1.0, guard=False, w_max=1.2)
+    first = initial_schedule(s, xy, p)
+    e_lat = np.full(n, 0.05)
+    e_lat[12] = 0.3
+    pa = passes_v(e_lat, [1] * n, [0.9] * n, first.schedule)   # turn rates eq. 4.2 lets through
+    prop = plan(first.schedule, pa, [(first.schedule, pa)], s, xy, p)
+    thesis = next_schedule(first.schedule, pa, s, xy, p)
+    np.testing.assert_array_equal(prop.schedule, thesis.schedule)
+    assert prop.schedule[12] == pytest.approx(0.26) and prop.schedule[10] == pytest.approx(0.7)
+    # the guard on: w 0.9 at 0.5 m/s reaches 0.8 at 0.444 m/s, below 0.5: nothing is raised
+    guarded = plan(first.schedule, pa, [(first.schedule, pa)], s, xy, SchedulerParams(**{**p.__dict__, "guard": True}))
+    assert np.all(guarded.schedule <= first.schedule + 1e-12) and guarded.schedule[12] == pytest.approx(0.26)
+
+
+def test_the_guard_reads_the_latest_trials_of_the_history():
+    """Lateral errors 0.05, 0.09, 0.17 m at 0.5, 0.7, 0.9 m/s everywhere (lambda_L 0.3, bound 0.24): the
+    line over the three trials caps at 1.1556 (test above), so 0.9 + 0.2 = 1.1 passes. With guard_trials 2,
+    the line through (0.7, 0.09), (0.9, 0.17) has slope 0.4 and reaches 0.24 at 0.9 + 0.07 / 0.4 = 1.075."""
+    n = 11
+    s, xy = straight(n)
+    hist = [(np.full(n, v), passes_v([e] * n, [1.0] * n, [0.1] * n, [v] * n))
+            for v, e in ((0.5, 0.05), (0.7, 0.09), (0.9, 0.17))]
+    prev, last = hist[-1]
+    p = no_limits(lambda_L=0.3, w_max=1.2)
+    np.testing.assert_allclose(plan(prev, last, hist, s, xy, p).schedule, 1.1)
+    np.testing.assert_allclose(plan(prev, last, hist, s, xy, SchedulerParams(**{**p.__dict__, "guard_trials": 2})
+                                    ).schedule, 1.075)
+    caps = guard_caps(hist, s, p)
+    assert np.all(caps.by == 0) and caps.v_cap[5] == pytest.approx(1.15556, abs=1e-5)
+
+
+def test_pass_speeds_are_collected_and_stored(tmp_path):
+    import json
+    import sqlite3
+
+    from services.scheduler.core import pass_speeds
+    from services.scheduler.db import ScheduleDB
+
+    c = PassCollector(3)
+    c.add(0, 0.01, 0.0, 0.1, v_cmd=0.5)
+    c.add(0, 0.01, 0.0, 0.1, v_cmd=0.7)
+    c.add(1, 0.01, 0.0, 0.1)
+    assert c.passes.v_mps[0] == 0.7 and np.isnan(c.passes.v_mps[1])
+    # the commanded speed where recorded, the scheduled one elsewhere
+    assert pass_speeds(np.array([0.4, 0.4, 0.4]), c.passes).tolist() == [0.7, 0.4, 0.4]
+    db = ScheduleDB(tmp_path / "s.db")
+    s = np.array([0.0, 1.0, 2.0])
+    first = db.add_schedule("r", initial_schedule(s, np.column_stack([s, np.zeros(3)]), SchedulerParams()), "", 0, 1.0)
+    db.save_passes("r", "r1", 1, first.version, c.passes)
+    db.save_passes("r", "r1", 0, first.version, passes([0.1] * 3, [1] * 3, [0.1] * 3))   # recorded later
+    [(_, kept), (_, later)] = db.history("r")
+    assert np.array_equal(kept.v_mps, c.passes.v_mps, equal_nan=True) and later.e_lat_m[0] == 0.1
+    db.close()
+    # a body written before the pass speeds were kept loads with none
+    con = sqlite3.connect(tmp_path / "s.db")
+    body = json.dumps({"e_lat_m": [0.1, None, 0.2], "e_head_rad": [0, 0, 0], "w_cmd_radps": [0, 0, 0],
+                       "features": [None] * 3})
+    con.execute("UPDATE passes SET body=? WHERE trial=1", (body,))
+    con.commit()
+    con.close()
+    db = ScheduleDB(tmp_path / "s.db")
+    old = db.history("r")[0][1]
+    assert np.all(np.isnan(old.v_mps)) and np.isnan(old.e_lat_m[1])
+    db.close()
+
+
+@pytest.mark.parametrize("kw, match", [({"w_max": 0.0}, "w_max"), ({"guard_share": 0.0}, "guard_share"),
+                                       ({"guard_share": 1.2}, "guard_share"), ({"guard_radius_m": -1.0}, "guard"),
+                                       ({"guard_trials": 0}, "guard_trials")])
+def test_guard_settings_are_checked(kw, match):
+    with pytest.raises(ValueError, match=match):
+        SchedulerParams(**kw)
+
+
+def test_the_deployment_gives_the_scheduler_the_robots_turn_rate_limit():
+    from common.scenario import parse_scenario
+    from deploy.configs import service_configs
+
+    base = {"name": "g", "robot": {"preset": "grizzly"}, "path": {"waypoints": [[0, 0], [10, 0]]}}
+    cfg = service_configs(parse_scenario({**base, "scheduler": {"enabled": True}}), "/tmp/unused")
+    assert cfg["scheduler"].params.w_max == 1.2 and cfg["scheduler"].params.guard
+    # a w_max written in [scheduler] is a ceiling under the robot's own, like v_max
+    for written, used in ((0.9, 0.9), (2.0, 1.2)):
+        sc = parse_scenario({**base, "scheduler": {"enabled": True, "w_max": written, "guard": False}})
+        params = service_configs(sc, "/tmp/unused")["scheduler"].params
+        assert params.w_max == used and not params.guard

@@ -1,11 +1,12 @@
 """The speed scheduler as a real process: it collects a robot's per-vertex passes from the bus, proposes
-the next schedule after the trial (eq. 4.2-4.5), keeps it across a SIGKILL, answers the same update
-again with the same schedule, and answers bad requests with a reason."""
+the next schedule after the trial (eq. 4.2-4.5, and with its guard), keeps it across a SIGKILL, answers
+the same update again with the same schedule, and answers bad requests with a reason."""
 from __future__ import annotations
 
 import json
 import signal
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -26,14 +27,15 @@ from services.scheduler.core import DECREASE, INCREASE, SchedulerParams
 pytestmark = pytest.mark.integration
 N = 201                      # vertices 0.25 m apart: a 50 m straight route
 ROUTE = "straight"
+# the thesis rule alone (eq. 4.2-4.5 worked by hand below); the guard has its own test
 PARAMS = SchedulerParams(v_init=0.5, v_max=2.0, gamma1=0.2, gamma2=0.24, a_max=0.2, a_min=-0.05,
-                         v_start=0.4, start_m=5.0, v_end=0.4, end_m=5.0)
+                         v_start=0.4, start_m=5.0, v_end=0.4, end_m=5.0, guard=False)
 
 
-def status(trial: int, i: int, state: str, lateral_m: float) -> ControllerStatus:
+def status(trial: int, i: int, state: str, lateral_m: float, w: float = 0.1, v: float = 0.5) -> ControllerStatus:
     return ControllerStatus(
         stamp_s=float(i), tick=i, trial=trial, algorithm="fl", state=state, reason="", path_id=ROUTE, vertex=i,
-        distance_m=0.25 * i, lateral_m=float(lateral_m), heading_rad=0.01, v_cmd_mps=0.5, w_cmd_radps=0.1,
+        distance_m=0.25 * i, lateral_m=float(lateral_m), heading_rad=0.01, v_cmd_mps=v, w_cmd_radps=w,
         solve_ms=0.1, iterations=0, loc_age_s=0.0, rejected_msgs=0, experiences_sent=0, experiences_pending=0,
         window_experiences=0, hyper_version=0, w_ff_radps=0.0, pred_x_m=[], pred_y_m=[], pred_theta_rad=[],
         sigma_lat_m=0.0, sigma_head_rad=0.0, solver_status="")
@@ -42,13 +44,13 @@ def status(trial: int, i: int, state: str, lateral_m: float) -> ControllerStatus
 class Rig:
     """Router + localizer (serves the route) + scheduler, and a client node playing robot r1."""
 
-    def __init__(self, base):
+    def __init__(self, base, params: SchedulerParams = PARAMS):
         self.base = base
         RouteStore(base / "data" / "routes").save(
             Path(ROUTE, np.column_stack([np.arange(N) * 0.25, np.zeros(N), np.zeros(N)])), 0.0)
         (base / "loc.toml").write_text(dump_toml(LocalizerConfig(robot_name="r1", data_dir=str(base / "data"))))
         (base / "sched.toml").write_text(dump_toml(SchedulerConfig(db_path=str(base / "data" / "sched.db"),
-                                                                   params=PARAMS)))
+                                                                   params=params)))
         self.port = free_port()
         self.launcher = Launcher(f"tcp/127.0.0.1:{self.port}", base / "logs")
         self.launcher.start_router(self.port)
@@ -88,7 +90,8 @@ class Rig:
     def schedule(self) -> SpeedSchedule:
         return query_one(self.node.session, keys.sched_schedule(ROUTE), SpeedSchedule, timeout_s=10.0)
 
-    def drive_trial(self, trial: int, lateral_m, end_event_first: bool = False) -> None:
+    def drive_trial(self, trial: int, lateral_m, end_event_first: bool = False, w=lambda i: 0.1,
+                    v=lambda i: 0.5) -> None:
         """One repeat as the scheduler sees it: a status per vertex and the controller's end of the route,
         and the bridge's end-of-trial event (after them, or overtaking them as it may on a real bus)."""
         def event():
@@ -98,7 +101,7 @@ class Rig:
             self.node.publish(keys.ctrl_status("r1"), status(trial, 0, "tracking", lateral_m(0)))
             event()
         for i in range(N):
-            self.node.publish(keys.ctrl_status("r1"), status(trial, i, "tracking", lateral_m(i)))
+            self.node.publish(keys.ctrl_status("r1"), status(trial, i, "tracking", lateral_m(i), w(i), v(i)))
         self.node.publish(keys.ctrl_status("r1"), status(trial, N - 1, "finished", 0.0))
         if not end_event_first:
             event()
@@ -192,3 +195,21 @@ def test_bad_requests_get_a_reason_and_the_service_keeps_running(rig):
     with pytest.raises(LookupError, match="ScheduleUpdate"):
         query_one(rig.node.session, keys.sched_update(ROUTE), SpeedSchedule, payload=b"\x92\x01", timeout_s=10)
     assert rig.schedule().version == 1
+
+
+def test_the_guard_holds_a_turn_the_thesis_rule_would_speed_up(tmp_path):
+    """A turn at 23.75-26.25 m took 0.7 rad/s at a commanded 0.45 m/s (eq. 4.2 raises it: 0.7 < 1.0).
+    The guard's bound is 0.8 * min(1.0, w_max 1.2) = 0.8 rad/s, reached at 0.8 * 0.45 / 0.7 = 0.514 m/s:
+    the turn and 3 m either side rise only that far, the rest by gamma1 to 0.7."""
+    rig = Rig(tmp_path, replace(PARAMS, guard=True, w_max=1.2))
+    try:
+        rig.schedule()
+        rig.drive_trial(1, lambda i: 0.02, w=lambda i: 0.7 if 95 <= i <= 105 else 0.1, v=lambda i: 0.45)
+        v2 = rig.wait_version(2)
+        d, v = np.asarray(v2.decisions), np.asarray(v2.v_mps)
+        assert np.all(d[20:180] == INCREASE)                    # eq. 4.2's decisions, as they were
+        assert np.allclose(v[83:118], 0.8 * 0.45 / 0.7) and v[40] == pytest.approx(0.7)
+        assert v[150] == pytest.approx(0.7)
+        assert any(n.startswith("guard: ") and "turn rate" in n for n in v2.notes), v2.notes
+    finally:
+        rig.close()

@@ -16,6 +16,31 @@ lateral and heading error, commanded angular rate and matched features (4.2.2). 
 Beyond the thesis (its 4.4 discussion): with `use_all_trials`, a vertex is never raised to a speed at
 which an earlier trial violated a criterion there; past experience caps the increases.
 A criterion without data (no matched features from a `pose` localizer) is skipped, and said so.
+
+The guard (`guard`, on by default; off, the schedule is eq. 4.2-4.5 exactly). Eq. 4.2 raises a vertex
+by gamma1 when its criteria were met at the *old* speed; it does not ask whether they will be met at
+the new one: a turn that took 0.86 rad/s at 0.7 m/s is scheduled at 0.9 m/s, where it takes ~1.1 rad/s
+against a 1.2 rad/s limit, and the corrections on top of that saturate the controller. The guard asks of a prediction at the
+new speed what eq. 4.2 asks of the last pass, with a margin, and caps the increase there (it never
+lowers a speed: decreases stay eq. 4.2's). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
+|omega_cmd| of 4.2.2) and vertex i, over the latest `guard_trials` trials t:
+
+  (G1) E_t,i = max of c over the passes within guard_radius_m of vertex i, V_t,i = the commanded speed
+       of that pass (the scheduled one where none was recorded): a peak moves a little with speed;
+  (G2) proportional growth from the latest pass, c(v) = E_last v / V_last: the turn rate follows the
+       route's curvature, omega = v kappa, and the controller's corrections grow with speed with it;
+       and the least-squares line c(v) = a + b v through the trials' (V, E) when their speeds spread
+       over at least gamma1 / 2 (a closer fit is noise) and b > 0: growth faster than proportional,
+       as a drive lag makes near a robot's limits;
+  (G3) the cap v_cap,i = the lowest speed at which either (G2) reaches guard_share * lambda_c, with
+       lambda_omega replaced by the robot's limit w_max where that is lower (eq. 4.2 alone never sees a
+       saturated turn rate exceed a lambda_omega set above w_max); then v_sugg,i <- max(v_sched,i,
+       min(v_sugg,i, v_cap,i)) for the increased vertices, before eq. 4.3-4.4.
+
+The learned model's variance at the new speed bin (thesis 5.3.2, 7.2) would be a third prediction, but
+it lives in the store and describes the disturbance, not the errors and turn rates the controller will
+produce with it; the passes predict those directly, without a query on the bus, so the guard uses them
+only.
 """
 from __future__ import annotations
 
@@ -47,6 +72,12 @@ class SchedulerParams:
     end_m: float = 5.0
     prune_min_m: float = 2.0
     use_all_trials: bool = False
+    guard: bool = True           # cap increases at the speed the next trial can be expected to hold (module doc)
+    w_max: float | None = None   # the robot's turn-rate limit (rad/s), set by the deployment; None: unknown,
+                                 # the guard then holds predicted turn rates under lambda_omega alone
+    guard_share: float = 0.8     # predictions at the new speed may reach this share of the limits (G3)
+    guard_radius_m: float = 3.0  # passes this close to a vertex count as its own (G1)
+    guard_trials: int = 3        # the latest trials the growth with speed is fitted over (G2)
 
     def __post_init__(self):
         if self.gamma1 <= 0 or self.gamma2 <= 0:
@@ -61,20 +92,30 @@ class SchedulerParams:
             raise ValueError("speeds must be > 0 and v_init <= v_max")
         if self.start_m < 0 or self.end_m < 0 or self.prune_min_m < 0:
             raise ValueError("start_m, end_m and prune_min_m must be >= 0")
+        if self.w_max is not None and not self.w_max > 0:
+            raise ValueError("w_max must be > 0 (or left out: unknown)")
+        if not 0 < self.guard_share <= 1 or self.guard_radius_m < 0 or self.guard_trials < 1:
+            raise ValueError("guard_share must be in (0, 1], guard_radius_m >= 0 and guard_trials >= 1")
 
 
 @dataclass
 class VertexPasses:
-    """What one trial experienced at each vertex (4.2.2). NaN where there is no data."""
+    """What one trial experienced at each vertex (4.2.2), and the commanded speed it passed at (for the
+    guard's G1). NaN where there is no data; v_mps left out: not recorded (all NaN)."""
     e_lat_m: np.ndarray
     e_head_rad: np.ndarray
     w_cmd_radps: np.ndarray
     features: np.ndarray
+    v_mps: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.v_mps is None:
+            self.v_mps = np.full(len(self.e_lat_m), np.nan)
 
     @classmethod
     def empty(cls, n: int) -> "VertexPasses":
         nan = np.full(n, np.nan)
-        return cls(nan.copy(), nan.copy(), nan.copy(), nan.copy())
+        return cls(nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy())
 
     @property
     def seen(self) -> np.ndarray:
@@ -83,18 +124,22 @@ class VertexPasses:
 
 class PassCollector:
     """Accumulates a trial's passes from the controller's per-step status: per vertex the worst (largest)
-    |error| and |w| and the smallest feature count seen while that vertex was the nearest one."""
+    |error|, |w| and commanded speed, and the smallest feature count seen while that vertex was the
+    nearest one."""
 
     def __init__(self, n_vertices: int):
         self.passes = VertexPasses.empty(n_vertices)
 
-    def add(self, vertex: int, e_lat: float, e_head: float, w_cmd: float, features: float | None = None) -> None:
+    def add(self, vertex: int, e_lat: float, e_head: float, w_cmd: float, features: float | None = None,
+            v_cmd: float | None = None) -> None:
         p = self.passes
         if not 0 <= vertex < len(p.e_lat_m):
             return
         p.e_lat_m[vertex] = np.fmax(p.e_lat_m[vertex], abs(e_lat))
         p.e_head_rad[vertex] = np.fmax(p.e_head_rad[vertex], abs(e_head))
         p.w_cmd_radps[vertex] = np.fmax(p.w_cmd_radps[vertex], abs(w_cmd))
+        if v_cmd is not None:
+            p.v_mps[vertex] = np.fmax(p.v_mps[vertex], abs(v_cmd))
         if features is not None:
             self.add_features(vertex, features)
 
@@ -106,10 +151,11 @@ class PassCollector:
 @dataclass
 class Proposal:
     schedule: np.ndarray
-    suggested: np.ndarray           # after eq. 4.2 and pruning, before the limits
-    decisions: np.ndarray           # INCREASE / KEEP / DECREASE per vertex
+    suggested: np.ndarray           # after eq. 4.2, pruning and the guard, before the limits
+    decisions: np.ndarray           # INCREASE / KEEP / DECREASE per vertex (eq. 4.2's, before the guard)
     limits: np.ndarray              # eq. 4.3 limits
     notes: list[str] = field(default_factory=list)
+    caps: GuardCaps | None = None   # the guard's ceilings (None: guard off)
 
 
 def decide(passes: VertexPasses, p: SchedulerParams) -> tuple[np.ndarray, list[str]]:
@@ -190,9 +236,10 @@ def initial_schedule(s: np.ndarray, xy: np.ndarray, p: SchedulerParams) -> Propo
 
 
 def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.ndarray, p: SchedulerParams,
-                  failed_at: np.ndarray | None = None) -> Proposal:
+                  failed_at: np.ndarray | None = None, caps: GuardCaps | None = None) -> Proposal:
     """The schedule for trial j+1 from trial j's schedule and experience. `failed_at[i]`: the lowest
-    scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials."""
+    scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials;
+    `caps`: the guard's ceilings (guard_caps), None for the thesis rule alone."""
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
     sugg = np.where(decisions == INCREASE, prev + p.gamma1, np.where(decisions == DECREASE, prev - p.gamma2, prev))
@@ -201,9 +248,116 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
         sugg = np.where(capped, np.maximum(prev, failed_at - p.gamma2), sugg)
         if np.any(capped):
             notes.append(f"{int(np.sum(capped))} increases capped below speeds that failed in earlier trials")
+    if caps is not None:
+        sugg, note = apply_guard(sugg, prev, decisions, caps)
+        notes += [note] if note else []
     sugg = np.maximum(sugg, 0.05)   # never schedule a standstill: the robot must finish the route
     sched, lim = limit(sugg, s, xy, p)
-    return Proposal(sched, sugg, decisions, lim, notes)
+    return Proposal(sched, sugg, decisions, lim, notes, caps)
+
+
+def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray,
+         xy: np.ndarray, p: SchedulerParams) -> Proposal:
+    """The next schedule as the service makes it: from the latest trial's `passes` (eq. 4.2-4.5), capped by
+    the earlier trials of `history` (each trial's schedule and passes, oldest first, this one included)
+    where use_all_trials and the guard ask for them."""
+    failed = failure_speeds(history, p) if p.use_all_trials and history else None
+    caps = guard_caps(history, s, p) if p.guard and history else None
+    return next_schedule(prev, passes, s, xy, p, failed, caps)
+
+
+# --- the guard (module doc, G1-G3) ----------------------------------------------------------------------
+CRITERIA = ("lateral error", "heading error", "turn rate")
+
+
+@dataclass(frozen=True)
+class GuardCaps:
+    """Per vertex, the highest speed the guard lets an increase reach (inf where nothing caps it) and
+    the criterion that set it (an index into CRITERIA; -1 where none)."""
+    v_cap: np.ndarray
+    by: np.ndarray
+
+
+def guard_limits(p: SchedulerParams) -> np.ndarray:
+    """G3's bounds on the predicted |e_L| (m), |e_H| (rad) and |omega_cmd| (rad/s)."""
+    w_lim = p.lambda_omega if p.w_max is None else min(p.lambda_omega, p.w_max)
+    return p.guard_share * np.array([p.lambda_L, math.radians(p.lambda_H), w_lim])
+
+
+def neighbourhoods(s: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex i, the index range [lo_i, hi_i) of the vertices within radius_m of arc length."""
+    s = np.asarray(s, dtype=float)
+    return np.searchsorted(s, s - radius_m, side="left"), np.searchsorted(s, s + radius_m, side="right")
+
+
+def pass_speeds(sched: np.ndarray, passes: VertexPasses) -> np.ndarray:
+    """The speed each vertex was passed at: the commanded one where recorded, else the scheduled one."""
+    v = passes.v_mps
+    return np.where(np.isfinite(v) & (v > 0), v, np.asarray(sched, dtype=float))
+
+
+def worst_nearby(values: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """G1: per vertex, the largest value passed within its neighbourhood and the speed of that pass
+    (both NaN where the neighbourhood has no pass)."""
+    x = np.where(np.isfinite(values) & np.isfinite(v) & (v > 0), np.abs(values), -np.inf)
+    worst, at_v = np.full(len(x), np.nan), np.full(len(x), np.nan)
+    for i in range(len(x)):
+        j = lo[i] + int(np.argmax(x[lo[i]:hi[i]]))
+        if np.isfinite(x[j]):
+            worst[i], at_v[i] = x[j], v[j]
+    return worst, at_v
+
+
+def growth_cap(V: np.ndarray, E: np.ndarray, allowed: float, min_spread: float) -> np.ndarray:
+    """G2-G3 per vertex (columns) from passes over trials (rows, oldest first; NaN: no pass): the
+    lowest speed at which proportional growth from the latest pass, or the rising least-squares line
+    through all of them, reaches `allowed`; inf where neither does."""
+    V, E = np.atleast_2d(V), np.atleast_2d(E)
+    have = np.isfinite(V) & np.isfinite(E)
+    e_last, v_last = np.full(V.shape[1], np.nan), np.full(V.shape[1], np.nan)
+    for t in range(V.shape[0]):                     # the latest pass of each vertex
+        e_last, v_last = np.where(have[t], E[t], e_last), np.where(have[t], V[t], v_last)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        prop = np.where(e_last > 0, allowed * v_last / e_last, np.inf)
+        k = have.sum(axis=0)
+        v0, e0 = np.where(have, V, 0.0), np.where(have, E, 0.0)
+        v_mean, e_mean = v0.sum(axis=0) / k, e0.sum(axis=0) / k
+        dv, de = np.where(have, V - v_mean, 0.0), np.where(have, E - e_mean, 0.0)
+        slope = (dv * de).sum(axis=0) / (dv * dv).sum(axis=0)
+        spread = np.where(have, V, -np.inf).max(axis=0) - np.where(have, V, np.inf).min(axis=0)
+        fits = (k >= 2) & (spread >= min_spread) & (slope > 0)
+        line = np.where(fits, v_mean + (allowed - e_mean) / slope, np.inf)
+    return np.fmin(prop, line)
+
+
+def guard_caps(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray, p: SchedulerParams) -> GuardCaps:
+    """G1-G3 over the latest guard_trials trials of `history` (each trial's schedule and passes, oldest
+    first)."""
+    recent = history[-p.guard_trials:]
+    lo, hi = neighbourhoods(s, p.guard_radius_m)
+    allowed = guard_limits(p)
+    caps = np.full((len(CRITERIA), len(s)), np.inf)
+    for c in range(len(CRITERIA)):
+        worst = [worst_nearby((pa.e_lat_m, pa.e_head_rad, pa.w_cmd_radps)[c], pass_speeds(sched, pa), lo, hi)
+                 for sched, pa in recent]
+        E, V = np.array([w[0] for w in worst]), np.array([w[1] for w in worst])
+        caps[c] = growth_cap(V, E, float(allowed[c]), p.gamma1 / 2)
+    v_cap = caps.min(axis=0)
+    return GuardCaps(v_cap, np.where(np.isfinite(v_cap), np.argmin(caps, axis=0), -1))
+
+
+def apply_guard(sugg: np.ndarray, prev: np.ndarray, decisions: np.ndarray,
+                caps: GuardCaps) -> tuple[np.ndarray, str]:
+    """G3's last step: increases no higher than the caps, and never below the previous speed (lowering
+    is eq. 4.2's decision, not the guard's). Returns the suggestion and a note ("" if nothing capped)."""
+    capped = (decisions == INCREASE) & (sugg > caps.v_cap)
+    out = np.where(capped, np.maximum(prev, np.minimum(sugg, caps.v_cap)), sugg)
+    if not np.any(capped):
+        return out, ""
+    held = int(np.sum(capped & (out <= prev)))
+    by = ", ".join(f"{name} {int(np.sum(capped & (caps.by == c)))}" for c, name in enumerate(CRITERIA)
+                   if np.any(capped & (caps.by == c)))
+    return out, f"guard: {int(np.sum(capped))} increases capped ({by}), {held} of them kept at their speed"
 
 
 def failure_speeds(history: list[tuple[np.ndarray, VertexPasses]], p: SchedulerParams) -> np.ndarray:

@@ -29,10 +29,11 @@ def _load_schedule(body: str) -> SpeedSchedule:
 
 
 def _load_passes(body: str) -> VertexPasses:
-    """A stored trial's passes (JSON null where NaN: no data at that vertex)."""
+    """A stored trial's passes (JSON null where NaN: no data at that vertex; bodies written before the
+    pass speeds were kept have no v_mps)."""
     p = json.loads(body)
     return VertexPasses(_from_list(p["e_lat_m"]), _from_list(p["e_head_rad"]), _from_list(p["w_cmd_radps"]),
-                        _from_list(p["features"]))
+                        _from_list(p["features"]), _from_list(p["v_mps"]) if "v_mps" in p else None)
 
 
 def _nan_list(a: np.ndarray) -> list:
@@ -90,14 +91,17 @@ class ScheduleDB:
 
     def save_passes(self, path_id: str, robot: str, trial: int, version: int, p: VertexPasses) -> None:
         body = json.dumps({"e_lat_m": _nan_list(p.e_lat_m), "e_head_rad": _nan_list(p.e_head_rad),
-                           "w_cmd_radps": _nan_list(p.w_cmd_radps), "features": _nan_list(p.features)})
+                           "w_cmd_radps": _nan_list(p.w_cmd_radps), "features": _nan_list(p.features),
+                           "v_mps": _nan_list(p.v_mps)})
         with self._lock:
             self._db.execute("INSERT OR REPLACE INTO passes VALUES (?, ?, ?, ?, ?)",
                              (path_id, robot, trial, version, body))
 
     def history(self, path_id: str) -> list[tuple[np.ndarray, VertexPasses]]:
-        """Every recorded trial of a route with the schedule it ran at (for use_all_trials)."""
+        """Every recorded trial of a route with the schedule it ran at, in the order they were recorded
+        (for use_all_trials and the guard, which reads the latest)."""
         with self._lock:
             rows = self._db.execute("SELECT p.body, s.body FROM passes p JOIN schedules s ON s.path_id = p.path_id "
-                                    "AND s.version = p.schedule_version WHERE p.path_id=?", (path_id,)).fetchall()
+                                    "AND s.version = p.schedule_version WHERE p.path_id=? ORDER BY p.rowid",
+                                    (path_id,)).fetchall()
         return [(np.array(_load_schedule(sb).v_mps), _load_passes(pb)) for pb, sb in rows]

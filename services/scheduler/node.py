@@ -29,7 +29,7 @@ from common.messages import (ControllerStatus, LocState, RouteMsg, ScheduleUpdat
 from common.path import Path
 from common.service import Control, Service, service_main
 from services.scheduler.config import SchedulerConfig
-from services.scheduler.core import PassCollector, Proposal, failure_speeds, initial_schedule, next_schedule
+from services.scheduler.core import PassCollector, Proposal, initial_schedule, plan
 from services.scheduler.db import ScheduleDB
 
 
@@ -103,7 +103,7 @@ class SchedulerService(Service):
                 return
             c.last_status_wall_s = time.monotonic()
             if msg.state in ("tracking", "holding"):
-                c.collector.add(msg.vertex, msg.lateral_m, msg.heading_rad, msg.w_cmd_radps)
+                c.collector.add(msg.vertex, msg.lateral_m, msg.heading_rad, msg.w_cmd_radps, v_cmd=msg.v_cmd_mps)
             elif msg.state == "finished":
                 c.finished = True
         elif kind == "loc" and msg.has_pose and msg.matched_features is not None and msg.path_id:
@@ -177,9 +177,8 @@ class SchedulerService(Service):
         route = self._route(path_id)
         prev = self.latest(path_id)
         self.db.save_passes(path_id, robot, trial, version, collector.passes)
-        failed = failure_speeds(self.db.history(path_id), self.params) if self.params.use_all_trials else None
-        proposal = next_schedule(np.asarray(prev.v_mps), collector.passes, route.s, route.poses[:, :2],
-                                 self.params, failed)
+        history = self.db.history(path_id) if self.params.use_all_trials or self.params.guard else []
+        proposal = plan(np.asarray(prev.v_mps), collector.passes, history, route.s, route.poses[:, :2], self.params)
         return self._store(path_id, proposal, robot, trial)
 
     def _answer(self, query: zenoh.Query, fn) -> None:
