@@ -5,9 +5,15 @@ until a store acknowledges it (after its durable commit); what is not acknowledg
 `resend_after_s` is sent again (the store stores a (source, seq) once). A store that is down simply
 means a growing outbox, capped, never a blocked control loop.
 
-WindowCache: keeps the local windows ahead of the robot prefetched in a background thread, plus the
-latest hyperparameters, so the real-time loop reads only memory. If the store disappears, the loop
-keeps the data it has.
+WindowCache: the local windows and hyperparameters the real-time loop reads, from memory only. Two modes:
+- prefetch (realtime clock): a background thread keeps the windows ahead of the robot fetched and a
+  subscription the newest hyperparameters. If the store disappears, the loop keeps the data it has.
+- snapshot (lockstep clock): `set_route`, at trial prepare, copies the route's retained experiences and
+  hyperparameters as the store holds them then, and nothing changes until the next prepare. Every step
+  then sees the same data whatever the timing (a prefetch that has not caught up after a speed change
+  gives a partial window; one that runs late can see this trial's own experiences or their evictions),
+  so a run is reproducible for a seed. The windows are thus built from earlier traversals only, as in
+  thesis 5.3.2. If the store does not answer, the cache falls back to prefetching and says so.
 """
 from __future__ import annotations
 
@@ -132,12 +138,36 @@ class LocalData:
     missing_bins: int
 
 
+# A snapshot reads the route in pages of this many vertices on either side of a page's centre (a page of
+# 129 vertices holds a few thousand experiences: well inside ExperienceWindow's size limit) ...
+SNAPSHOT_PAGE_HALF_VERTICES = 64
+# ... and every speed bin on either side of bin 0: commanded speeds up to 250 m/s at 0.25 m/s bins
+SNAPSHOT_SPEED_BINS = 1000
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What `WindowCache.set_route` took in snapshot mode: the data the whole trial predicts from."""
+    path_id: str
+    experiences: int        # retained experiences of the cache's nominal model on the route
+    hyper_version: int      # 0: no hyperparameters fitted yet (the nominal model only)
+    complete: bool          # every page and the hyperparameters were answered
+    error: str = ""         # why not, when not complete
+
+    def describe(self) -> str:
+        if not self.complete:
+            return f"store snapshot of {self.path_id} incomplete ({self.error}): prefetching windows instead"
+        hyper = f"hyperparameters v{self.hyper_version}" if self.hyper_version else "no hyperparameters yet"
+        return f"store snapshot of {self.path_id}: {self.experiences} experiences, {hyper}"
+
+
 class WindowCache:
     def __init__(self, session: zenoh.Session, *, bins: BinPolicy = BinPolicy(), lookahead_vertices: int = 20,
-                 query_timeout_s: float = 2.0, model: str = ""):
+                 query_timeout_s: float = 2.0, model: str = "", snapshot: bool = False):
         self.session = session
         # windows and hyperparameters of this nominal model's experiences only ("": the route's newest)
         self.model = model
+        self.snapshot = snapshot      # snapshot mode (module docstring); else prefetch mode
         self.v_bin = bins.v_bin_mps
         self.cv = bins.c_vertex
         self.cl = bins.c_velocity
@@ -146,6 +176,7 @@ class WindowCache:
         self._lock = threading.Lock()
         self._bins: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self._assembled: dict[tuple[int, int], LocalData] = {}
+        self._complete = False        # the route's snapshot is in: a bin not in _bins is empty, not missing
         self._path_id: str | None = None
         self._n_vertices = 0
         self._position: tuple[int, float] | None = None
@@ -156,8 +187,14 @@ class WindowCache:
         self.queries = 0
         self.failures = 0
         self.last_error = ""
-        self._thread = threading.Thread(target=self._run, name="window-prefetch", daemon=True)
-        self._thread.start()
+        self._thread: threading.Thread | None = None
+        if not snapshot:
+            self._start_prefetcher()
+
+    def _start_prefetcher(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="window-prefetch", daemon=True)
+            self._thread.start()
 
     # --- called by the control loop: memory only ---------------------------------------------
     def speed_bin(self, v: float) -> int:
@@ -179,7 +216,7 @@ class WindowCache:
                 for b in range(l - self.cl, l + self.cl + 1):
                     entry = self._bins.get((v, b))
                     if entry is None:
-                        missing += 0 if (v < 0 or v >= self._n_vertices) else 1
+                        missing += 0 if (self._complete or v < 0 or v >= self._n_vertices) else 1
                     elif len(entry[0]):
                         A.append(entry[0])
                         G.append(entry[1])
@@ -194,21 +231,37 @@ class WindowCache:
         return self._hyper
 
     # --- route changes (between trials) ------------------------------------------------------------
-    def set_route(self, path_id: str, n_vertices: int) -> None:
-        """Start over for a route: forget cached windows (new experiences exist), follow its hyperparameters."""
+    def set_route(self, path_id: str, n_vertices: int) -> Snapshot | None:
+        """Start over for a route: forget cached windows (new experiences exist), follow its hyperparameters.
+        In snapshot mode, take the route's snapshot now and return what it holds: this waits on the
+        store, so call it when a trial is prepared, never from the control loop."""
         with self._lock:
             self._bins.clear()
             self._assembled.clear()
             changed = path_id != self._path_id
             self._path_id, self._n_vertices = path_id, n_vertices
             self._position = None
-            if changed:
+            self._complete = False
+            if changed or self.snapshot:
                 self._hyper = None
+        if self.snapshot:
+            return self._take_snapshot(path_id, n_vertices)
         if changed:
             if self._hyper_sub is not None:
                 self._hyper_sub.undeclare()
             self._hyper_sub = self.session.declare_subscriber(keys.store_hyper(path_id), self._on_hyper)
         self._wake.set()
+        return None
+
+    def set_model(self, model: str) -> None:
+        """Read the windows and hyperparameters of nominal model `model` from now on (between trials;
+        `set_route` then fetches them)."""
+        with self._lock:
+            if model != self.model:
+                self.model = model
+                self._bins.clear()
+                self._assembled.clear()
+                self._hyper = None
 
     def _on_hyper(self, sample: zenoh.Sample) -> None:
         try:
@@ -218,15 +271,69 @@ class WindowCache:
             return
         if self.model and msg.model != self.model:      # fitted on another nominal model's residuals
             return
-        if msg.path_id == self._path_id and (self._hyper is None or msg.version > self._hyper.version):
-            self._hyper = msg
+        with self._lock:
+            # a snapshot's hyperparameters hold for the whole trial
+            if not self._complete and msg.path_id == self._path_id and (
+                    self._hyper is None or msg.version > self._hyper.version):
+                self._hyper = msg
 
     def close(self) -> None:
         self._stop.set()
         self._wake.set()
-        self._thread.join(timeout=5)
+        if self._thread is not None:
+            self._thread.join(timeout=5)
         if self._hyper_sub is not None:
             self._hyper_sub.undeclare()
+
+    # --- snapshot (between trials) ---------------------------------------------------------------
+    def _take_snapshot(self, path_id: str, n_vertices: int) -> Snapshot:
+        """Read every retained experience of the route (this model's), page by page, and the newest
+        hyperparameters. The runner asks for a trial only once the store has acknowledged and fitted
+        the last one's experiences, so the pages see one state of the store."""
+        bins: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        errors = []
+        page = 2 * SNAPSHOT_PAGE_HALF_VERTICES + 1
+        for lo in range(0, max(n_vertices, 1), page):
+            window = self._get_window(path_id, lo + SNAPSHOT_PAGE_HALF_VERTICES, 0.0,
+                                      f"&c_vertex={SNAPSHOT_PAGE_HALF_VERTICES}&c_velocity={SNAPSHOT_SPEED_BINS}")
+            if window is None:
+                errors.append(f"vertices {lo}-{lo + page - 1}: {self.last_error}")
+            else:
+                bins.update(_by_bin(window))
+        hyper, answered = self._get_hyper(path_id)
+        if not answered:
+            errors.append("hyperparameters: no store answered")
+        complete = not errors
+        with self._lock:
+            self._bins, self._assembled = bins, {}
+            self._hyper, self._complete = hyper, complete
+        snap = Snapshot(path_id=path_id, experiences=sum(len(a) for a, _ in bins.values()),
+                        hyper_version=hyper.version if hyper is not None else 0, complete=complete,
+                        error="; ".join(errors))
+        if not complete:
+            log.warning("%s", snap.describe())
+            self._start_prefetcher()
+            self._wake.set()
+        return snap
+
+    def _get_hyper(self, path_id: str) -> tuple[HyperMsg | None, bool]:
+        """The store's newest hyperparameters of this model for the route (None: none fitted), and
+        whether any store answered at all."""
+        selector = keys.store_hyper(path_id) + (f"?model={self.model}" if self.model else "")
+        best, answered = None, False
+        for rep in self.session.get(selector, timeout=self.timeout):
+            answered = True
+            if rep.ok is None:
+                continue        # no hyperparameters for this route and model yet
+            try:
+                msg = decode(HyperMsg, rep.ok.payload.to_bytes())
+            except DecodeError as exc:
+                log.warning("rejected hyperparameters on %s: %s", rep.ok.key_expr, exc)
+                continue
+            if msg.path_id == path_id and (not self.model or msg.model == self.model) and (
+                    best is None or msg.version > best.version):
+                best = msg
+        return best, answered
 
     # --- background prefetch ---------------------------------------------------------------------
     def _run(self) -> None:
@@ -235,6 +342,8 @@ class WindowCache:
             self._wake.clear()
             if self._stop.is_set():
                 return
+            if self._complete:
+                continue        # a snapshot holds everything this trial will ask for
             try:
                 self._fetch_hyper_once()
                 self._prefetch()
@@ -272,9 +381,10 @@ class WindowCache:
                 return
             v += 2 * self.cv + 1
 
-    def _fetch(self, path_id: str, center: int, speed: float) -> None:
+    def _get_window(self, path_id: str, center: int, speed: float, extra: str = "") -> ExperienceWindow | None:
+        """One window query (None: no usable answer; `last_error` says why)."""
         self.queries += 1
-        selector = f"{keys.store_window(path_id)}?vertex={center}&speed={speed:.6f}"
+        selector = f"{keys.store_window(path_id)}?vertex={center}&speed={speed:.6f}{extra}"
         if self.model:
             selector += f"&model={self.model}"
         window = None
@@ -292,15 +402,37 @@ class WindowCache:
             if not self.last_error:
                 self.last_error = "no store answered"
             self.failures += 1
+        return window
+
+    def _fetch(self, path_id: str, center: int, speed: float) -> None:
+        window = self._get_window(path_id, center, speed)
+        if window is None:
             return
         A = np.frombuffer(window.a_f64, "<f8").reshape(-1, A_DIM)
         G = np.frombuffer(window.g_f64, "<f8").reshape(-1, G_DIM)
         verts, bins = np.asarray(window.vertices), np.asarray(window.speed_bins)
         with self._lock:
-            if path_id != self._path_id:
+            if path_id != self._path_id or self._complete:
                 return
             for v in range(window.vertex_lo, window.vertex_hi + 1):
                 for b in range(window.bin_lo, window.bin_hi + 1):
                     sel = (verts == v) & (bins == b)
                     self._bins[(v, b)] = (A[sel], G[sel])
             self._assembled.clear()
+
+
+def _by_bin(window: ExperienceWindow) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    """A window's experiences per non-empty (vertex, speed bin), each bin's in the store's order."""
+    A = np.frombuffer(window.a_f64, "<f8").reshape(-1, A_DIM)
+    G = np.frombuffer(window.g_f64, "<f8").reshape(-1, G_DIM)
+    verts = np.asarray(window.vertices, dtype=np.int64)
+    bins = np.asarray(window.speed_bins, dtype=np.int64)
+    order = np.lexsort((bins, verts))     # stable: each bin keeps the store's (insertion) order
+    cells = np.stack([verts[order], bins[order]], axis=1)
+    starts = np.flatnonzero(np.r_[True, np.any(cells[1:] != cells[:-1], axis=1)]) if len(order) else []
+    out = {}
+    for i, start in enumerate(starts):
+        end = starts[i + 1] if i + 1 < len(starts) else len(order)
+        idx = order[start:end]
+        out[(int(verts[idx[0]]), int(bins[idx[0]]))] = (A[idx], G[idx])
+    return out

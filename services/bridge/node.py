@@ -1,8 +1,13 @@
 """Bridge service, `sim` backend: owns the robot clock, steps the simulator, applies commands.
 
 Lockstep (default): after publishing tick k the bridge waits until the tick has been answered (the
-controller's command during a repeat, the localizer's state during teach) or `lockstep_timeout_s`
-passes or the answering service's liveliness token disappears, then steps. Realtime: it steps at
+controller's command and its status during a repeat, the localizer's state during teach) or
+`lockstep_timeout_s` passes or the answering service's liveliness token disappears, then steps. The
+status too, because whoever watches the run (the experiment runner, the scheduler) learns from it:
+once it is out, whatever follows from the next tick or the trial's end reaches them after it. So that a
+seed gives one run, a lockstep repeat ends at the first tick at which the controller has reported the
+end of the route and the robot is at rest, and a stop request takes effect once the current tick has
+been answered, not wherever it happens to arrive. Realtime: it steps at
 wall-clock pace and applies whatever command arrived last. Either way the watchdog (robot time)
 brakes the robot when commands go stale.
 """
@@ -15,13 +20,17 @@ import time
 
 from common import keys, se2
 from common.bus import Node
-from common.messages import (BridgeStatus, Clock, LocState, Odometry, TrialEvent, TruthPose,
+from common.messages import (BridgeStatus, Clock, ControllerStatus, LocState, Odometry, TrialEvent, TruthPose,
                              VelocityCommand)
 from common.service import Control, Service, service_main
 from services.bridge.config import BridgeConfig
 from services.bridge.render import StereoRenderer
 from services.bridge.simulator import SimSample, Simulator
 from services.bridge.teach_driver import PurePursuitDriver, smooth_waypoints
+
+# below these ground speeds a robot that has finished its route is at rest (the runner's rule too)
+AT_REST_MPS = 0.01
+AT_REST_RADPS = 0.01
 
 
 class BridgeService(Service):
@@ -44,6 +53,9 @@ class BridgeService(Service):
         self.latest_cmd: VelocityCommand | None = None
         self._applied_cmd: VelocityCommand | None = None
         self.latest_loc_tick = -1
+        self.latest_status_tick = -1     # of the controller's statuses of this trial (lockstep)
+        self.route_finished = False      # the controller has reported the end of the route (lockstep)
+        self._stop_requested = False     # a stop request waits for the end of the tick (lockstep)
         self.alive: set[str] = set()
         self._timeout_warned = False
         r = self.robot
@@ -54,6 +66,8 @@ class BridgeService(Service):
         self.renderer = StereoRenderer.from_bridge_config(cfg) if cfg.stereo is not None else None
         node.subscribe_queue(keys.cmd_vel(r), VelocityCommand, self.inbox)
         node.subscribe_queue(keys.loc_state(r), LocState, self.inbox)
+        if c.mode == "lockstep":
+            node.subscribe_queue(keys.ctrl_status(r), ControllerStatus, self.inbox)
         node.liveliness_subscriber(keys.alive_all(r), lambda k, up: self.inbox.put(("__alive__", (k, up))))
 
     # --- inputs ------------------------------------------------------------------------------
@@ -67,6 +81,10 @@ class BridgeService(Service):
         elif isinstance(msg, LocState):
             if msg.trial == self.trial:
                 self.latest_loc_tick = max(self.latest_loc_tick, msg.tick)
+        elif isinstance(msg, ControllerStatus):
+            if self.mode == "repeat" and msg.trial == self.trial:
+                self.latest_status_tick = max(self.latest_status_tick, msg.tick)
+                self.route_finished = self.route_finished or msg.state == "finished"
 
     def on_control(self, ctl: Control) -> None:
         req = ctl.request
@@ -89,7 +107,8 @@ class BridgeService(Service):
             self.mode, self.trial, self.path_id, self.driver = req.mode, req.trial, req.path_id, driver
             self.sample = self.sim.sample()
             self.latest_cmd = self._applied_cmd = None
-            self.latest_loc_tick = -1
+            self.latest_loc_tick = self.latest_status_tick = -1
+            self.route_finished = False
             self.deadline_s = self.sim.t + req.max_duration_s if req.max_duration_s > 0 else math.inf
             return self.reply(ctl, True, f"{req.mode} trial {req.trial} ready at "
                               f"({start[0]:.2f}, {start[1]:.2f}, {math.degrees(start[2]):.1f} deg)")
@@ -104,6 +123,10 @@ class BridgeService(Service):
                                                        event="started", reason="", path_id=self.path_id))
             return self.reply(ctl, True, f"{self.mode} trial {self.trial} started at t={self.sim.t:.2f} s")
         if req.action == "stop":
+            if self.running and self.cfg.clock.mode == "lockstep":
+                # between ticks, once this one is answered: its answer reaches everyone before the end
+                self._stop_requested = True
+                return self.reply(ctl, True, f"stopping after tick {self.sample.tick}")
             if self.running:
                 self._end_trial("stopped on request")
             return self.reply(ctl, True, "stopped")
@@ -153,7 +176,7 @@ class BridgeService(Service):
     def _answered(self) -> bool:
         tick = self.sample.tick
         if self.mode == "repeat":
-            return self.latest_cmd is not None and self.latest_cmd.tick >= tick
+            return self.latest_cmd is not None and self.latest_cmd.tick >= tick and self.latest_status_tick >= tick
         return self.latest_loc_tick >= tick
 
     def _wait_for_answer(self, stop: threading.Event) -> None:
@@ -180,16 +203,24 @@ class BridgeService(Service):
 
     def _trial_over(self) -> bool:
         s = self.sample
+        if self._stop_requested:
+            self._end_trial("stopped on request")
+            return True
         if self.mode == "teach" and self.driver is not None and self.driver.done and abs(s.v_ground) < 1e-3:
             self._end_trial("teach complete")
             return True
         if s.stamp_s >= self.deadline_s:
             self._end_trial("time limit reached")
             return True
+        if (self.mode == "repeat" and self.cfg.clock.mode == "lockstep" and self.route_finished
+                and abs(s.v_ground) < AT_REST_MPS and abs(s.w_ground) < AT_REST_RADPS):
+            self._end_trial("end of route, at rest")
+            return True
         return False
 
     def _end_trial(self, reason: str) -> None:
         mode, self.mode, self.running = self.mode, "idle", False   # a new trial needs a new prepare
+        self._stop_requested = False
         self.sim.end_trial()
         self.sample = self.sim.sample()
         self.latest_cmd = self._applied_cmd = None

@@ -68,8 +68,9 @@ class ControllerService(Service):
         self.model_tag = cfg.nmpc.lag(cfg.period_s).model_tag
         self.outbox = ExperienceOutbox(node, r, resend_after_s=st.resend_after_s,
                                        model=self.model_tag) if st.enabled else None
-        self.cache = WindowCache(node.session, bins=st.bins(),
-                                 lookahead_vertices=st.lookahead_vertices, model=self.model_tag) if st.enabled else None
+        # lockstep: one snapshot of the store per trial, so that a seed gives one run (store_client.py)
+        self.cache = WindowCache(node.session, bins=st.bins(), lookahead_vertices=st.lookahead_vertices,
+                                 model=self.model_tag, snapshot=cfg.clock_mode == "lockstep") if st.enabled else None
 
     # --- control -----------------------------------------------------------------------------
     def on_control(self, ctl: Control) -> None:
@@ -108,8 +109,10 @@ class ControllerService(Service):
             self.core = ControllerCore(path, tracker, self.cfg.period_s)
             self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
             if self.cache is not None:
-                self.cache.set_route(req.path_id, len(path))
+                snapshot = self.cache.set_route(req.path_id, len(path))
                 self.cache.set_position(0, req.speed_mps)
+                if snapshot is not None:
+                    self.log.info("trial %d: %s", req.trial, snapshot.describe())
             return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
                               f"with {self.cfg.algorithm}")
         if req.action == "stop":
