@@ -45,6 +45,11 @@ def ctrl_corridor(robot: str) -> str:
     return f"{_robot(robot)}/ctrl/corridor"
 
 
+def ctrl_model(robot: str, path_id: str) -> str:
+    """The controller's nominal model identified on a route's teach pass (pub + queryable; '*': all routes)."""
+    return f"{_robot(robot)}/ctrl/model/{path_id if path_id == '*' else check_name('path_id', path_id)}"
+
+
 def bridge_status(robot: str) -> str:
     return f"{_robot(robot)}/bridge/status"
 

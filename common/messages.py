@@ -206,8 +206,10 @@ class NominalModel(Message):
     tau_w_s: float
     dead_time_v_s: float              # ... its dead time (whole periods) ...
     dead_time_w_s: float
-    gain_v: float                     # ... and its steady-state gain (reported, not modelled)
+    gain_v: float                     # ... its steady-state gain ...
     gain_w: float
+    rate_limit_v_mps2: float | None   # ... and its acceleration limit (None: none seen); reported, not modelled
+    rate_limit_w_radps2: float | None
     fit_rmse_v_mps: float             # one-step prediction error of the fits
     fit_rmse_w_radps: float
     samples_v: int

@@ -70,6 +70,11 @@ class ExperienceOutbox:
         if ack.rejected:
             log.warning("store %s rejected %d experiences: %s", ack.store, len(ack.rejected), ack.reason)
 
+    def set_model(self, model: str) -> None:
+        """The nominal model the experiences added from now on are residuals of (queued ones keep theirs)."""
+        with self._lock:
+            self.model = model
+
     def add(self, *, stamp_s: float, trial: int, path_id: str, vertex: int, v_cmd_mps: float, a, g) -> Experience:
         with self._lock:
             exp = Experience(stamp_s=stamp_s, robot=self.robot, trial=trial, path_id=path_id, seq=self._seq,

@@ -24,8 +24,10 @@ from common.bus import open_session, query, query_one
 from common.codec import Decoder, decode, encode
 from common.config import ConfigError
 from common.messages import (ControllerStatus, ControlReply, ControlRequest, Experience, ExperienceBatch, HyperMsg,
-                             LocState, RouteMsg, ScheduleUpdate, SpeedSchedule, StoreStats, TrialEvent, TruthPose)
+                             LocState, NominalModel, RouteMsg, ScheduleUpdate, SpeedSchedule, StoreStats, TrialEvent,
+                             TruthPose)
 from common.path import Path, RouteRecorder
+from common.typecheck import to_dict
 from common.scenario import Scenario, load_scenario
 from deploy.configs import service_configs, write_service_configs
 from deploy.launcher import LaunchError, Launcher
@@ -116,6 +118,7 @@ class Experiment:
         self.alive: set[str] = set()
         self.ready_timeout_s = ready_timeout_s
         self.teach_sim_s = self.teach_wall_s = 0.0
+        self.nominal_model: NominalModel | None = None
         self.decoder = Decoder(log)
         r = self.robot
         self._decls = [session.declare_subscriber(key, self._enqueue(kind, cls, key)) for kind, cls, key in (
@@ -258,7 +261,20 @@ class Experiment:
             raise ExperimentError(f"teach: no usable truth for the taught route: {exc}") from None
         self.teach_wall_s = time.monotonic() - t_wall
         self.progress.line(f"teach   done in {self.teach_wall_s:.1f} s wall: {rep.detail}")
+        self.nominal_model = self._identify()
         return self.path
+
+    def _identify(self) -> NominalModel:
+        """The controller identifies its nominal model on the teach pass just driven."""
+        rep = self.control("controller", "stop", "teach", 0)
+        try:
+            model = query_one(self.session, keys.ctrl_model(self.robot, self.path_id), NominalModel, timeout_s=10.0)
+        except LookupError as exc:
+            raise ExperimentError(f"the controller's identified model is not available: {exc}") from None
+        if self.recorder:
+            self.recorder.record(keys.ctrl_model(self.robot, self.path_id), encode(model))
+        self.progress.line(f"model   {rep.detail}")
+        return model
 
     def schedule(self, trial: int) -> SpeedSchedule:
         """The schedule the scheduler has for the route now (trial 1: v_init, made on demand)."""
@@ -516,6 +532,7 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
         exp = Experiment(sc, session, recorder, progress, launcher)
         exp.wait_ready()
         exp.teach()
+        summary["identified_model"] = to_dict(exp.nominal_model)
         _run_trials(sc, exp, out, summary, records, series, disturbance)
     finally:
         if exp is not None:

@@ -39,6 +39,9 @@ def test_experiment_with_two_trials_writes_its_outputs(tmp_path, scenario_file):
         assert t["travel_time_s"] > 0 and 0.5 < t["mean_speed_mps"] <= 0.85
         assert t["constraint_violations"] == 0 and t["mean_matched_features"] is None
         assert t["solve_ms_p99"] >= t["solve_ms_p50"] > 0
+    model = on_disk["identified_model"]           # the controller's nominal model, from the teach pass
+    assert model["path_id"] == "itest" and model["model_tag"].startswith("unicycle-dt100ms-")
+    assert 0.05 < model["actuator_tau_s"][1] < 0.3 and len(model["prior_std_base"]) == 3
     assert "itest" in (out / "report.html").read_text()
     # the recording is a finished, indexed MCAP holding every kind of bus message
     with open(out / "run.mcap", "rb") as fh:
@@ -47,7 +50,8 @@ def test_experiment_with_two_trials_writes_its_outputs(tmp_path, scenario_file):
         topics = {c.topic for c in reader.get_summary().channels.values()}
         assert stats.message_count > 1000
         for key in (keys.truth("r1"), keys.cmd_vel("r1"), keys.loc_state("r1"), keys.ctrl_status("r1"),
-                    keys.odom("r1"), keys.clock("r1"), keys.trial_event("r1"), keys.control("r1", "bridge")):
+                    keys.odom("r1"), keys.clock("r1"), keys.trial_event("r1"), keys.control("r1", "bridge"),
+                    keys.ctrl_model("r1", "itest")):
             assert key in topics, key
         for _schema, channel, message in reader.iter_messages(topics=[keys.truth("r1")]):
             assert decode(TruthPose, message.data).trial in (0, 1, 2)

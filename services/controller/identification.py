@@ -6,11 +6,13 @@ time constant tau and dead time d periods, in discrete time (an ARX model):
 
     y_{k+1} = a y_k + b u_{k-d},        a = exp(-dt / tau),   K = b / (1 - a)
 
-by linear least squares for every d = 0..max_dead; the d with the smallest residual wins (the smaller d
-on a near tie). The NMPC's nominal model is a first-order lag (actuator.py): the dead time is folded into
-its time constant, tau + d dt (e^{-theta s} ~ 1 / (1 + theta s) to first order); the gain is reported,
-not modelled (slip against the ground is the learned disturbance's business). An Ackermann robot's
-turn rate follows its speed (eq. 5.27), so w is fitted only where the robot is moving.
+for every d = 0..max_dead, with the drive's rate (acceleration) limit as a third parameter: a start from
+rest is a ramp at that limit, which a plain lag would take for a slow one. A longer dead time is taken
+only where it lowers the residual clearly. The NMPC's nominal model is a first-order lag (actuator.py):
+the dead time is folded into its time constant, tau + d dt (e^{-theta s} ~ 1 / (1 + theta s) to first
+order); the gain and the rate limit are reported, not modelled (slip against the ground is the learned
+disturbance's business). An Ackermann robot's turn rate follows its speed (eq. 5.27), so w is fitted
+only where the robot is moving.
 
 A-priori uncertainty. The identified model's one-period residuals on the teach pass, g_k (eq. 5.17,
 body frame, from the teach pass's pose estimates and the commands), give its scale: the prior keeps
@@ -27,6 +29,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from common.messages import LocState, NominalModel
 from common.path import Path
@@ -35,6 +38,9 @@ from services.controller.experience import ExperienceBuilder
 from services.controller.uncertainty import PriorStd
 
 MAX_DEAD_PERIODS = 5
+# a longer dead time must explain the data this much better (a speed held constant for most of the pass
+# leaves the residual at the odometry's noise whatever the dead time)
+DEAD_TIME_GAIN = 0.05
 MIN_SAMPLES = 20
 # a channel whose command hardly changed says nothing about its dynamics
 MIN_EXCITATION = {"v": 0.01, "w": 0.01}     # m/s, rad/s (std of the command)
@@ -45,6 +51,7 @@ class ChannelFit:
     tau_s: float          # first-order time constant
     dead_time_s: float    # whole periods
     gain: float
+    rate_limit: float     # largest change per second the drive showed (m/s^2, rad/s^2); inf: none seen
     rmse: float           # one-step prediction error of the fit (m/s or rad/s)
     samples: int
 
@@ -54,32 +61,51 @@ class ChannelFit:
         return self.tau_s + self.dead_time_s
 
 
+def _steps(u: np.ndarray, y: np.ndarray, d: int, use: np.ndarray | None) -> np.ndarray:
+    """The k whose step y_k -> y_{k+1} under u_{k-d} is fully known (and allowed by `use`)."""
+    k = np.arange(d, len(y) - 1)
+    ok = np.isfinite(y[k]) & np.isfinite(y[k + 1]) & np.isfinite(u[k - d])
+    if use is not None:
+        ok &= use[k]
+    return k[ok]
+
+
+def _rate_limited_fit(yk: np.ndarray, uk: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, float]:
+    """(a, K, R) of dy = clip((1 - a)(K u - y), -R, R) by nonlinear least squares from the linear
+    ARX solution, and the residual RMS. A drive's acceleration limit makes large steps look like a
+    slower lag; fitted with the limit, the lag is the one small corrections see."""
+    (a0, b0), *_ = np.linalg.lstsq(np.column_stack([yk, uk]), yk + dy, rcond=None)
+    a0 = float(np.clip(a0, 0.0, 0.99))
+    k0 = float(np.clip(b0 / max(1.0 - a0, 1e-3), 0.3, 3.0))
+    r_max = float(np.max(np.abs(dy))) + 1e-9
+
+    def resid(p):
+        return np.clip((1.0 - p[0]) * (p[1] * uk - yk), -p[2], p[2]) - dy
+    fit = least_squares(resid, [a0, k0, 0.9 * r_max], bounds=([0.0, 0.3, 1e-3 * r_max], [0.999, 3.0, 4.0 * r_max]))
+    return fit.x, float(np.sqrt(np.mean(fit.fun ** 2)))
+
+
 def fit_channel(u: np.ndarray, y: np.ndarray, dt: float, use: np.ndarray | None = None,
                 max_dead: int = MAX_DEAD_PERIODS) -> ChannelFit | None:
-    """ARX fit of one channel; u[k] held over period k, y[k] measured at tick k (NaN: missing).
-    `use[k]`: whether the step k -> k+1 may enter the fit. None when the data cannot identify it."""
+    """First-order lag with dead time and a rate limit for one channel; u[k] held over period k, y[k]
+    measured at tick k (NaN: missing); `use[k]`: whether the step k -> k+1 may enter the fit. The dead
+    time is the shortest whose residual no longer one is clearly below. None when the data cannot identify it."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     best = None
     for d in range(max_dead + 1):
-        k = np.arange(d, len(y) - 1)
-        ok = np.isfinite(y[k]) & np.isfinite(y[k + 1]) & np.isfinite(u[k - d])
-        if use is not None:
-            ok &= use[k]
-        k = k[ok]
+        k = _steps(u, y, d, use)
         if len(k) < MIN_SAMPLES:
             continue
-        X = np.column_stack([y[k], u[k - d]])
-        coef, *_ = np.linalg.lstsq(X, y[k + 1], rcond=None)
-        rmse = float(np.sqrt(np.mean((X @ coef - y[k + 1]) ** 2)))
-        if best is None or rmse < best[0] * (1.0 - 1e-3):
-            best = (rmse, d, coef, len(k))
-    if best is None:
-        return None
-    rmse, d, (a, b), n = best
-    if not (0.0 <= a < 1.0) or abs(1.0 - a) < 1e-9:
+        (a, gain, limit), rmse = _rate_limited_fit(y[k], u[k - d], y[k + 1] - y[k])
+        if best is None or rmse < best[0] * (1.0 - DEAD_TIME_GAIN):
+            best = (rmse, d, a, gain, limit, k)
+    if best is None or best[2] >= 0.999:
         return None            # no stable first-order response in these data
+    rmse, d, a, gain, limit, k = best
+    unclipped = np.abs((1.0 - a) * (gain * u[k - d] - y[k]))
+    rate = limit / dt if np.any(unclipped > limit) else math.inf
     tau = 0.0 if a <= 0.0 else -dt / math.log(a)
-    return ChannelFit(tau_s=tau, dead_time_s=d * dt, gain=float(b / (1.0 - a)), rmse=rmse, samples=n)
+    return ChannelFit(tau_s=tau, dead_time_s=d * dt, gain=float(gain), rate_limit=rate, rmse=rmse, samples=len(k))
 
 
 class TeachRecorder:
@@ -177,6 +203,10 @@ def scaled_prior(G: np.ndarray, U: np.ndarray, shape: PriorStd = PriorStd()) -> 
     return prior, scale
 
 
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
 def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd()) -> NominalModel:
     """The nominal model of the robot that drove this teach pass, as the controller will use it."""
     u, y = rec.arrays()
@@ -195,6 +225,8 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         tau_v_s=fit(drive.v, "tau_s", 0.0), tau_w_s=fit(drive.w, "tau_s", 0.0),
         dead_time_v_s=fit(drive.v, "dead_time_s", 0.0), dead_time_w_s=fit(drive.w, "dead_time_s", 0.0),
         gain_v=fit(drive.v, "gain", 1.0), gain_w=fit(drive.w, "gain", 1.0),
+        rate_limit_v_mps2=_finite(fit(drive.v, "rate_limit", math.inf)),
+        rate_limit_w_radps2=_finite(fit(drive.w, "rate_limit", math.inf)),
         fit_rmse_v_mps=fit(drive.v, "rmse", 0.0), fit_rmse_w_radps=fit(drive.w, "rmse", 0.0),
         samples_v=fit(drive.v, "samples", 0), samples_w=fit(drive.w, "samples", 0),
         actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,

@@ -16,10 +16,10 @@ from pathlib import Path as FsPath
 import numpy as np
 
 from common import keys
-from common.bus import Node, query_one
+from common.bus import Node, query_one, reply
 from common.config import ConfigError
-from common.messages import (Clock, ControllerStatus, CorridorUpdate, LocState, RouteMsg, SpeedSchedule,
-                             VelocityCommand)
+from common.messages import (NAME_RE, BridgeStatus, Clock, ControllerStatus, CorridorUpdate, LocState, Odometry,
+                             RouteMsg, SpeedSchedule, VelocityCommand)
 from common.path import Path
 from common.service import Control, Service, service_main
 from common.store_client import ExperienceOutbox, WindowCache
@@ -29,7 +29,9 @@ from services.controller.corridor import Corridor
 from services.controller.ilc import ILCMemory
 from services.controller.laws import SteeringLaw
 from services.controller.local_model import LocalModels
+from services.controller.nominal_models import NominalModels
 from services.controller.registry import LawInputs, law_entry
+from services.controller.settings import NMPCSettings
 from services.controller.tracker import Decision, PathTracker, TrackerLimits
 
 class ControllerService(Service):
@@ -63,8 +65,13 @@ class ControllerService(Service):
         self.limits = TrackerLimits(lim.v_max_mps, lim.w_max_radps,
                                     lim.max_curvature_per_m if lim.max_curvature_per_m > 0 else math.inf)
         self.gains = cfg.fl
+        # the nominal model per route, identified on its teach pass (nominal_models.py)
+        self.nominal = NominalModels(r, cfg.period_s, FsPath(cfg.data_dir) / "models" if cfg.data_dir else None)
+        node.subscribe_queue(keys.bridge_status(r), BridgeStatus, self.inbox)
+        node.subscribe_queue(keys.odom(r), Odometry, self.inbox)
+        node.queryable(keys.ctrl_model(r, "*"), lambda q: self.inbox.put(("q_model", q)))
         st = cfg.store
-        # experiences are residuals of this nominal model, and only this model's are learned from
+        # experiences are residuals of the trial's nominal model, and only its own are learned from
         self.model_tag = cfg.nmpc.lag(cfg.period_s).model_tag
         self.outbox = ExperienceOutbox(node, r, resend_after_s=st.resend_after_s,
                                        model=self.model_tag) if st.enabled else None
@@ -79,57 +86,104 @@ class ControllerService(Service):
             return self.reply(ctl, True, f"algorithm={self.cfg.algorithm} trial={self.trial}")
         if req.action == "prepare":
             self.core = None
-            if req.mode != "repeat":
-                return self.reply(ctl, True, "idle during teach")
-            try:
-                msg = query_one(self.node.session, keys.route(req.path_id), RouteMsg,
-                                timeout_s=self.cfg.route_timeout_s)
-                path = Path.from_msg(msg)
-            except (LookupError, ValueError) as exc:
-                return self.reply(ctl, False, f"cannot load route {req.path_id}: {exc}")
-            self.learning = req.learning
-            schedule, note = None, f"at {req.speed_mps:.2f} m/s"
-            if req.schedule:
-                try:
-                    sched = query_one(self.node.session, keys.sched_schedule(req.path_id), SpeedSchedule,
-                                      timeout_s=self.cfg.route_timeout_s)
-                except (LookupError, ValueError) as exc:
-                    return self.reply(ctl, False, f"no speed schedule for {req.path_id}: {exc}")
-                schedule = np.asarray(sched.v_mps)
-                note = f"on schedule v{sched.version} ({schedule.min():.2f}-{schedule.max():.2f} m/s)"
-            try:
-                law, ic_vertices = self._make_law(req.path_id, path)
-                tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps,
-                                      loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2,
-                                      ic_vertices=ic_vertices, schedule=schedule,
-                                      corridor=self._corridor(req.path_id, path),
-                                      lag=self.cfg.nmpc.lag(self.cfg.period_s))
-            except (OSError, ValueError) as exc:
-                return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
-            self.core = ControllerCore(path, tracker, self.cfg.period_s)
-            self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
-            if self.cache is not None:
-                snapshot = self.cache.set_route(req.path_id, len(path))
-                self.cache.set_position(0, req.speed_mps)
-                if snapshot is not None:
-                    self.log.info("trial %d: %s", req.trial, snapshot.describe())
-            return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
-                              f"with {self.cfg.algorithm}")
+            if req.mode == "teach":
+                self.nominal.start_teach()
+                return self.reply(ctl, True, "recording the teach pass to identify the nominal model")
+            return self._prepare_repeat(ctl)
         if req.action == "stop":
-            self.core = None
-            notes = [self._learn_ilc()] if self.ilc is not None else []
-            self.ilc = None
-            if self.outbox is not None:
-                # a sync point for the runner: everything this trial produced is stored once we answer
-                ok = self.outbox.wait_acked(self.cfg.store.ack_timeout_s)
-                notes.append(f"{self.outbox.acked} experiences acknowledged" if ok else
-                             f"{self.outbox.pending} experiences not yet acknowledged by any store")
-            return self.reply(ctl, True, "; ".join(["idle"] + notes))
+            return self._finish_teach(ctl) if req.mode == "teach" else self._stop_repeat(ctl)
         if req.action == "start":
             return self.reply(ctl, True, "")
         return self.reply(ctl, False, f"unsupported action {req.action}")
 
-    def _make_law(self, path_id: str, path: Path) -> tuple[SteeringLaw, int]:
+    def _load_route(self, path_id: str) -> Path:
+        msg = query_one(self.node.session, keys.route(path_id), RouteMsg, timeout_s=self.cfg.route_timeout_s)
+        return Path.from_msg(msg)
+
+    def _prepare_repeat(self, ctl: Control) -> None:
+        req = ctl.request
+        try:
+            path = self._load_route(req.path_id)
+        except (LookupError, ValueError) as exc:
+            return self.reply(ctl, False, f"cannot load route {req.path_id}: {exc}")
+        self.learning = req.learning
+        schedule, note = None, f"at {req.speed_mps:.2f} m/s"
+        if req.schedule:
+            try:
+                sched = query_one(self.node.session, keys.sched_schedule(req.path_id), SpeedSchedule,
+                                  timeout_s=self.cfg.route_timeout_s)
+            except (LookupError, ValueError) as exc:
+                return self.reply(ctl, False, f"no speed schedule for {req.path_id}: {exc}")
+            schedule = np.asarray(sched.v_mps)
+            note = f"on schedule v{sched.version} ({schedule.min():.2f}-{schedule.max():.2f} m/s)"
+        # the route's identified model, where the configuration leaves it to identification
+        settings = self.cfg.nmpc.with_identified(self.nominal.of(req.path_id))
+        try:
+            law, ic_vertices = self._make_law(req.path_id, path, settings)
+            tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps,
+                                  loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2,
+                                  ic_vertices=ic_vertices, schedule=schedule,
+                                  corridor=self._corridor(req.path_id, path), lag=settings.lag(self.cfg.period_s))
+        except (OSError, ValueError) as exc:
+            return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
+        self.core = ControllerCore(path, tracker, self.cfg.period_s)
+        self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
+        self._use_model(tracker.lag.model_tag)
+        if self.cache is not None:
+            snapshot = self.cache.set_route(req.path_id, len(path))
+            self.cache.set_position(0, req.speed_mps)
+            if snapshot is not None:
+                self.log.info("trial %d: %s", req.trial, snapshot.describe())
+        return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
+                          f"with {self.cfg.algorithm}, nominal model {tracker.lag.model_tag}")
+
+    def _use_model(self, tag: str) -> None:
+        """The trial's nominal model names its experiences and selects the windows and fits learned from."""
+        self.model_tag = tag
+        if self.outbox is not None:
+            self.outbox.set_model(tag)
+        if self.cache is not None:
+            self.cache.set_model(tag)
+
+    def _stop_repeat(self, ctl: Control) -> None:
+        self.core = None
+        notes = [self._learn_ilc()] if self.ilc is not None else []
+        self.ilc = None
+        if self.outbox is not None:
+            # a sync point for the runner: everything this trial produced is stored once we answer
+            ok = self.outbox.wait_acked(self.cfg.store.ack_timeout_s)
+            notes.append(f"{self.outbox.acked} experiences acknowledged" if ok else
+                         f"{self.outbox.pending} experiences not yet acknowledged by any store")
+        return self.reply(ctl, True, "; ".join(["idle"] + notes))
+
+    def _finish_teach(self, ctl: Control) -> None:
+        """Identify the nominal model on the teach pass just driven (identification.py), keep it for the route."""
+        req = ctl.request
+        if self.nominal.teach is None:
+            return self.reply(ctl, True, "idle (no teach pass recorded)")
+        try:
+            model = self.nominal.finish_teach(self._load_route(req.path_id), req.stamp_s)
+        except (LookupError, ValueError) as exc:
+            return self.reply(ctl, False, f"cannot identify the nominal model on {req.path_id}: {exc}")
+        self.node.publish(keys.ctrl_model(self.cfg.robot_name, model.path_id), model)
+        tau = model.actuator_tau_s
+        return self.reply(ctl, True, f"nominal model {model.model_tag}: drive lags {tau[0]:.2f} / {tau[1]:.2f} s, "
+                          f"prior x{model.prior_scale[0]:.2f} / {model.prior_scale[1]:.2f} / {model.prior_scale[2]:.2f} "
+                          f"of the default" + "".join(f"; {n}" for n in model.notes))
+
+    def _serve_model(self, q) -> None:
+        """lbc/<robot>/ctrl/model/<path_id>: the route's identified nominal model."""
+        path_id = str(q.key_expr).rsplit("/", 1)[-1]
+        try:
+            model = self.nominal.of(path_id) if NAME_RE.match(path_id) else None
+            if model is None:
+                q.reply_err(f"no nominal model identified on route {path_id!r} here".encode())
+            else:
+                reply(q, keys.ctrl_model(self.cfg.robot_name, path_id), model)
+        finally:
+            q.drop()       # the querier waits for the end of the replies until the query is dropped
+
+    def _make_law(self, path_id: str, path: Path, settings: NMPCSettings) -> tuple[SteeringLaw, int]:
         """The steering law of the configured algorithm for a trial on `path`, and its eq. 3.16 m_ic."""
         entry = law_entry(self.cfg.algorithm)
         self.ilc, self.models = None, None
@@ -145,9 +199,9 @@ class ControllerService(Service):
                 return data.A, data.G
             # learning off: the same controller on its nominal model only
             self.models = LocalModels(window, lambda: cache.hyper if self.learning else None,
-                                      self.cfg.nmpc.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps,
+                                      settings.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps,
                                       hold_steps=entry.window_hold_steps)
-        law = entry.build(LawInputs(self.gains, self.cfg.nmpc, self.cfg.period_s,
+        law = entry.build(LawInputs(self.gains, settings, self.cfg.period_s,
                                     self.models.model_for if self.models else (lambda ctx: None), self.ilc))
         return law, self.cfg.ilc.ic_vertices if entry.learns == "ilc" else 0
 
@@ -182,7 +236,11 @@ class ControllerService(Service):
     def on_message(self, key: str, msg) -> None:
         if key == self.k_corridor:
             return self._on_corridor(msg)
-        if self.core is None or msg.trial != self.trial:
+        if key == "q_model":
+            return self._serve_model(msg)
+        if self.nominal.teach is not None:
+            return self.nominal.record(msg)
+        if not isinstance(msg, LocState) or self.core is None or msg.trial != self.trial:
             return
         if msg.path_id != self.path_id or msg.vertex >= len(self.core.path):
             self.node.decoder.rejected[key] += 1

@@ -1,12 +1,15 @@
 """Settings of the NMPC laws: the controller config's [nmpc] table and the scenario's [controller.nmpc]."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+from common.messages import NominalModel
 from services.controller.actuator import ActuatorLag
 from services.controller.uncertainty import PriorStd
 
 _PRIOR = PriorStd()
+# the settings a teach pass identifies unless they are set by hand (NominalModel has the same names)
+IDENTIFIED = ("actuator_tau_s", "prior_std_base", "prior_std_per_mps", "prior_std_per_radps")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -34,16 +37,18 @@ class NMPCSettings:
     slack_weight: float = 2000.0    # C/RC: L1 price of violating a (tightened) corridor limit
     sqp_iter: int = 4         # C/RC: SQP iterations per step at most
     # the a-priori std of the unicycle model's error per period (body frame: along, lateral, heading),
-    # base + per_mps |v| + per_radps |w|: slip and lag grow with speed and with turning
-    prior_std_base: tuple[float, float, float] = _PRIOR.base
-    prior_std_per_mps: tuple[float, float, float] = _PRIOR.per_mps
-    prior_std_per_radps: tuple[float, float, float] = _PRIOR.per_radps
+    # base + per_mps |v| + per_radps |w|: slip and lag grow with speed and with turning. None: identified
+    # from the route's teach pass (identification.py), or uncertainty.PriorStd's without one
+    prior_std_base: tuple[float, float, float] | None = None
+    prior_std_per_mps: tuple[float, float, float] | None = None
+    prior_std_per_radps: tuple[float, float, float] | None = None
     # C/RC beyond the first step: the tightened band keeps at least this fraction of the corridor (the
     # open-loop covariance ignores the localization updates still to come)
     min_band_fraction: float = 0.2
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)   # floor for what never repeats
-    # the drive's first-order lag (v, w) in seconds, from a step test (actuator.py); 0: eq. 5.26 as is
-    actuator_tau_s: tuple[float, float] = (0.0, 0.0)
+    # the drive's first-order lag (v, w) in seconds (actuator.py); 0: eq. 5.26 as is. None: identified from
+    # the route's teach pass (identification.py), or none without one
+    actuator_tau_s: tuple[float, float] | None = None
     # with a learned model, weigh the heading error against the crab angle the model needs to hold the
     # route at the planned speed (nmpc.crab_offsets), not the taught heading, which holds the teach
     # speed's crab: for repeats well above the teach speed on ground that slides the robot sideways
@@ -51,14 +56,17 @@ class NMPCSettings:
 
     def __post_init__(self):
         for name in ("prior_std_base", "prior_std_per_mps", "prior_std_per_radps", "process_std"):   # TOML gives lists
+            if getattr(self, name) is None:
+                continue
             value = tuple(float(x) for x in getattr(self, name))
             if len(value) != 3 or min(value) < 0:
                 raise ValueError(f"{name}: three non-negative values (along, lateral, heading)")
             object.__setattr__(self, name, value)
-        tau = tuple(float(x) for x in self.actuator_tau_s)
-        if len(tau) != 2 or min(tau) < 0:
-            raise ValueError("actuator_tau_s: two non-negative time constants (v, w) in seconds")
-        object.__setattr__(self, "actuator_tau_s", tau)
+        if self.actuator_tau_s is not None:
+            tau = tuple(float(x) for x in self.actuator_tau_s)
+            if len(tau) != 2 or min(tau) < 0:
+                raise ValueError("actuator_tau_s: two non-negative time constants (v, w) in seconds")
+            object.__setattr__(self, "actuator_tau_s", tau)
         if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
                 self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw, self.q_terminal, self.lookahead_m) < 0:
             raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
@@ -68,7 +76,17 @@ class NMPCSettings:
             raise ValueError("min_band_fraction must be in [0, 1)")
 
     def lag(self, dt: float) -> ActuatorLag:
-        return ActuatorLag(self.actuator_tau_s[0], self.actuator_tau_s[1], dt)
+        tau = self.actuator_tau_s or (0.0, 0.0)
+        return ActuatorLag(tau[0], tau[1], dt)
 
     def prior_std(self) -> PriorStd:
-        return PriorStd(base=self.prior_std_base, per_mps=self.prior_std_per_mps, per_radps=self.prior_std_per_radps)
+        return PriorStd(base=self.prior_std_base or _PRIOR.base, per_mps=self.prior_std_per_mps or _PRIOR.per_mps,
+                        per_radps=self.prior_std_per_radps or _PRIOR.per_radps)
+
+    def with_identified(self, model: NominalModel | None) -> NMPCSettings:
+        """These settings with what was left to identification (None) taken from `model`; hand-set
+        values stay as they are."""
+        if model is None:
+            return self
+        fill = {name: getattr(model, name) for name in IDENTIFIED if getattr(self, name) is None}
+        return replace(self, **fill)

@@ -1,0 +1,72 @@
+"""The nominal model of each route the robot was taught: recorded during the teach pass, identified at
+its end (identification.py), kept on disk (one file per route, written atomically) so that later trials
+and restarts use it."""
+from __future__ import annotations
+
+import os
+from pathlib import Path as FsPath
+
+from common.codec import decode, encode
+from common.messages import BridgeStatus, LocState, NominalModel, Odometry, check_name
+from common.path import Path
+from services.controller.identification import TeachRecorder, identify
+
+
+def model_file(directory: str | FsPath, path_id: str) -> FsPath:
+    return FsPath(directory) / f"{check_name('path_id', path_id)}.model"
+
+
+def save_model(directory: str | FsPath, model: NominalModel) -> FsPath:
+    target = model_file(directory, model.path_id)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_suffix(".tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(encode(model))
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, target)
+    return target
+
+
+class NominalModels:
+    def __init__(self, robot: str, dt: float, directory: str | FsPath | None):
+        self.robot = robot
+        self.dt = dt
+        self.directory = FsPath(directory) if directory else None
+        self.teach: TeachRecorder | None = None
+        self._known: dict[str, NominalModel] = {}
+
+    def start_teach(self) -> None:
+        self.teach = TeachRecorder(self.dt)
+
+    def record(self, msg: BridgeStatus | Odometry | LocState) -> None:
+        """What the teach pass shows: applied commands, wheel odometry, teach-time pose estimates."""
+        rec = self.teach
+        if rec is None:
+            return
+        if isinstance(msg, BridgeStatus):
+            if msg.mode == "teach" and msg.running:
+                rec.add_applied(msg.tick, msg.v_cmd_applied_mps, msg.w_cmd_applied_radps)
+        elif isinstance(msg, Odometry):
+            rec.add_odometry(msg.tick, msg.v_mps, msg.w_radps)
+        elif msg.status == "teach":
+            rec.add_estimate(msg)
+
+    def finish_teach(self, path: Path, stamp_s: float) -> NominalModel:
+        """Identify the model of the pass just recorded on `path`, keep it (and on disk) for the route."""
+        if self.teach is None:
+            raise ValueError("no teach pass was recorded")
+        model = identify(self.teach, path, self.robot, stamp_s)
+        self.teach = None
+        self._known[path.path_id] = model
+        if self.directory is not None:
+            save_model(self.directory, model)
+        return model
+
+    def of(self, path_id: str) -> NominalModel | None:
+        """The route's identified model, or None when it was not taught here."""
+        if path_id not in self._known and self.directory is not None:
+            f = model_file(self.directory, path_id)
+            if f.exists():
+                self._known[path_id] = decode(NominalModel, f.read_bytes())
+        return self._known.get(path_id)
