@@ -62,6 +62,8 @@ def _fmt(v) -> str:
         return str(int(v))
     if isinstance(v, (float, np.floating)):
         return f"{float(v):.4g}"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_fmt(x) for x in v)
     return str(v)
 
 
@@ -261,6 +263,24 @@ def _trial_table(trials: list[dict]) -> str:
     return f"<div style='overflow-x:auto'><table><tr>{head}</tr>{''.join(rows)}</table></div>"
 
 
+def _model_section(model: dict) -> list[str]:
+    """The nominal model the controller identified on the teach pass (summary.json identified_model)."""
+    rows = {"model (experiences carry this name)": model["model_tag"],
+            "speed channel: lag, dead time (s), gain, acceleration limit (m/s^2)":
+                (model["tau_v_s"], model["dead_time_v_s"], model["gain_v"], model["rate_limit_v_mps2"]),
+            "turn-rate channel: lag, dead time (s), gain, acceleration limit (rad/s^2)":
+                (model["tau_w_s"], model["dead_time_w_s"], model["gain_w"], model["rate_limit_w_radps2"]),
+            "lags the NMPC uses (v, w), s": model["actuator_tau_s"],
+            "a-priori std per period, base (m, m, rad)": model["prior_std_base"],
+            "... per m/s": model["prior_std_per_mps"], "... per rad/s": model["prior_std_per_radps"],
+            "scale of the default prior, from the teach residuals": model["prior_scale"]}
+    rows.update({f"note {i + 1}": n for i, n in enumerate(model.get("notes") or [])})
+    return ["<h2>Nominal model</h2><p class=cap>Identified by the controller on the teach pass: each drive "
+            "channel's first-order lag, dead time, gain and acceleration limit against the wheel odometry; the "
+            "a-priori uncertainty scaled to the model's one-period residuals on that pass. Hand-set "
+            "actuator_tau_s / prior_std_* in [controller.nmpc] override it.</p>", _kv_table(rows)]
+
+
 def _section(title: str, caption: str, png: str) -> str:
     return (f"<h2>{html.escape(title)}</h2><p class=cap>{html.escape(caption)}</p>"
             f"<img alt='{html.escape(title)}' src='data:image/png;base64,{png}'>")
@@ -310,6 +330,7 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
                  "as the controller uses them); bottom: heading-rate residual RMSE per trial without and with "
                  "the learned model (trial 1 has no model yet).",
                  _plot_disturbance(disturbance or [], scenario.sim.period_s)),
+        *(_model_section(summary["identified_model"]) if summary.get("identified_model") else []),
         "<h2>Trials</h2><p class=cap>All summary.json entries per trial; highlighted rows violated a "
         "constraint or did not complete. Angles in rad, times in s unless named otherwise.</p>",
         _trial_table(trials),

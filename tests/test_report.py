@@ -76,9 +76,18 @@ def disturbance(trial, n=200, learned=True):
     return DisturbanceSeries(trial, trial - 1, 100 * (trial - 1), s, g, mean, np.full_like(g, 0.003))
 
 
-def render(tmp_path, series, entries, dist=None):
+MODEL = {"model_tag": "unicycle-dt100ms-tauv370ms-tauw393ms", "tau_v_s": 0.37, "tau_w_s": 0.393,
+         "dead_time_v_s": 0.0, "dead_time_w_s": 0.0, "gain_v": 0.999, "gain_w": 1.0, "rate_limit_v_mps2": 0.82,
+         "rate_limit_w_radps2": None, "actuator_tau_s": [0.37, 0.393], "prior_std_base": [0.002, 0.0015, 0.002],
+         "prior_std_per_mps": [0.007, 0.006, 0.005], "prior_std_per_radps": [0.003, 0.003, 0.009],
+         "prior_scale": [1.64, 0.74, 0.6], "notes": ["w: <no> rate limit seen"]}
+
+
+def render(tmp_path, series, entries, dist=None, model=None):
     out = tmp_path / "sub" / "report.html"
     summary = {"scenario": "demo_slope", "algorithm": "lb-nmpc", "trials": entries}
+    if model is not None:
+        summary["identified_model"] = model
     write_report(out, make_scenario(), make_path(), series, summary,
                  {"wall_time_s": 12.5, "robot": "husky", "command": "lbc run demo.toml <x>"}, dist)
     return out.read_text(encoding="utf-8")
@@ -88,8 +97,11 @@ def test_report_contents(tmp_path):
     path = make_path()
     series = [make_series(path, 1), make_series(path, 2)]
     page = render(tmp_path, series, [entry(series[0], violations=3), entry(series[1])],
-                  [disturbance(1, learned=False), disturbance(2)])
+                  [disturbance(1, learned=False), disturbance(2)], MODEL)
     assert "Learned disturbance" in page
+    model = page[page.index("<h2>Nominal model</h2>"):page.index("<h2>Trials</h2>")]
+    assert "unicycle-dt100ms-tauv370ms-tauw393ms" in model and "0.37, 0, 0.999, 0.82" in model
+    assert "0.393, 0, 1, n/a" in model and "&lt;no&gt; rate limit" in model
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     assert "demo_slope" in page and "lb-nmpc" in page and "husky" in page
     images = re.findall(r"data:image/png;base64,([A-Za-z0-9+/=]+)", page)
