@@ -357,7 +357,9 @@ def run_bench(args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="lbc bench scenarios", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="lbc bench scenarios", description="how well the learning controllers "
+                                     "generalize: N random scenarios through the real services (distribution: "
+                                     "bench/scenario_draw.py)")
     parser.add_argument("--n", type=int, default=8, help="scenarios to draw (default 8)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, metavar="DIR", help="keep scenario files and runs here (new or empty)")
