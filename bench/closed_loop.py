@@ -83,8 +83,9 @@ class ClosedLoop:
         self.source.start_repeat(path, trial, np.random.default_rng([self.seed, 12, trial]))
         r = self.robot
         tracker = PathTracker(path, law or FLLaw(FLGains()),
-                              TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature), speed_mps=speed,
-                              ic_vertices=ic_vertices, corridor=corridor, lag=lag)
+                              TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature, r.decel_max_mps2),
+                              speed_mps=speed, ic_vertices=ic_vertices, corridor=corridor, lag=lag,
+                              period_s=self.period_s)
         core = ControllerCore(path, tracker, self.period_s)
         s = self.sim.sample()
         lat, head, hint, finished, observations = [], [], 0, False, []

@@ -154,7 +154,8 @@ class VelocityCommand(Message):
     source: str
 
 
-ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopped", "finished", "error"]
+# stopping: braking along the route after a safety stop (the command still steers), then stopped
+ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopping", "stopped", "finished", "error"]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -55,7 +55,7 @@ def truth_series(path: Path, rec: TrialRecord) -> TrialSeries:
         hint = pr.vertex
         rows.append((t.stamp_s, t.x_world_m, t.y_world_m, pr.distance_m, pr.lateral_m, pr.heading_rad, t.v_mps))
     arr = np.array(rows, dtype=float).reshape(-1, 7)
-    tracking = [s for s in rec.status if s.state in ("tracking", "holding", "stopped", "finished")]
+    tracking = [s for s in rec.status if s.state in ("tracking", "holding", "stopping", "stopped", "finished")]
     st = np.array([(s.distance_m, s.v_cmd_mps, s.w_cmd_radps, s.solve_ms) for s in tracking], dtype=float).reshape(-1, 4)
     loc = [(l.distance_m, np.nan if l.matched_features is None else l.matched_features, l.status == "ok")
            for l in rec.loc if l.status not in ("idle", "teach", "initializing")]

@@ -9,7 +9,7 @@ from common.messages import LocState
 from common.path import Path
 from common.scenario import TerrainPatch
 from services.controller.fl import FLGains, fl_angular_rate
-from services.controller.laws import FLLaw
+from services.controller.laws import FLLaw, LawResult
 from services.controller.tracker import PathTracker, TrackerLimits
 from services.localizer.pose_source import PoseSourceSettings
 from bench.closed_loop import ClosedLoop
@@ -140,6 +140,44 @@ def test_a_law_with_a_programming_error_fails_loudly(exc):
     tr = PathTracker(PATH, FailingLaw(exc), LIMITS, speed_mps=0.5)
     with pytest.raises(type(exc)):
         tr.step(1.0, loc(1.0))
+
+
+class StoppingLaw:
+    """Tracks like FL until `at_s`, then stops the robot for safety (as RC-LB-NMPC does)."""
+    name = "stopping"
+
+    def __init__(self, at_s: float):
+        self.at_s, self.fl = at_s, FLLaw(FLGains())
+
+    def angular(self, ctx):
+        if ctx.now_s >= self.at_s:
+            return LawResult(0.0, v_mps=0.0, stop_reason="predicted uncertainty no longer fits the corridor: stopped")
+        return self.fl.angular(ctx)
+
+
+def test_a_safety_stop_brakes_along_the_route_at_the_robots_limit():
+    """A law's stop is a manoeuvre: the speed falls by decel * dt per period and the turn rate keeps
+    steering towards the route (FL at the braking speed), until the robot stands; then it is stopped."""
+    limits = TrackerLimits(v_max_mps=1.0, w_max_radps=1.0, decel_mps2=2.0)
+    tr = PathTracker(PATH, StoppingLaw(at_s=1.05), limits, speed_mps=1.0, period_s=0.1)
+    assert tr.step(1.0, loc(1.0, x=1.0, y=0.0)).v_mps == pytest.approx(1.0)
+    states, speeds = [], []
+    for k in range(1, 9):
+        d = tr.step(1.0 + 0.1 * k, loc(1.0 + 0.1 * k, x=1.0 + 0.1 * k, y=0.05))
+        states.append(d.state)
+        speeds.append(d.v_mps)
+        if d.state == "stopping":   # left of the route: steering right, as FL at that speed would
+            assert d.w_radps == pytest.approx(fl_angular_rate(d.v_mps, 0.05, 0.0, 0.0, FLGains())) and d.w_radps < 0
+            assert "braking along the route" in d.reason and "uncertainty" in d.reason
+    assert states == ["stopping"] * 4 + ["stopped"] * 4
+    assert speeds[:4] == pytest.approx([0.8, 0.6, 0.4, 0.2]) and speeds[4:] == [0.0] * 4
+
+
+def test_a_safety_stop_without_an_estimate_stops_at_once():
+    tr = PathTracker(PATH, StoppingLaw(at_s=1.05), TrackerLimits(1.0, 1.0, decel_mps2=2.0), speed_mps=1.0)
+    tr.step(1.0, loc(1.0))
+    d = tr.step(1.1, loc(1.1, status="lost"))
+    assert d.state == "stopped" and d.v_mps == 0.0 and d.w_radps == 0.0
 
 
 def test_slows_into_the_end_and_finishes():

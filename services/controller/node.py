@@ -63,7 +63,8 @@ class ControllerService(Service):
         node.subscribe_queue(self.k_corridor, CorridorUpdate, self.inbox)
         lim = cfg.limits
         self.limits = TrackerLimits(lim.v_max_mps, lim.w_max_radps,
-                                    lim.max_curvature_per_m if lim.max_curvature_per_m > 0 else math.inf)
+                                    lim.max_curvature_per_m if lim.max_curvature_per_m > 0 else math.inf,
+                                    lim.decel_max_mps2 if lim.decel_max_mps2 > 0 else math.inf)
         self.gains = cfg.fl
         # the nominal model per route, identified on its teach pass (nominal_models.py)
         self.nominal = NominalModels(r, cfg.period_s, FsPath(cfg.data_dir) / "models" if cfg.data_dir else None)
@@ -123,7 +124,8 @@ class ControllerService(Service):
             tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps,
                                   loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2,
                                   ic_vertices=ic_vertices, schedule=schedule,
-                                  corridor=self._corridor(req.path_id, path), lag=settings.lag(self.cfg.period_s))
+                                  corridor=self._corridor(req.path_id, path), lag=settings.lag(self.cfg.period_s),
+                                  period_s=self.cfg.period_s)
         except (OSError, ValueError) as exc:
             return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
         self.core = ControllerCore(path, tracker, self.cfg.period_s)

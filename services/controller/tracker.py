@@ -19,7 +19,7 @@ from common.messages import LocState
 from common.path import Path
 from services.controller.actuator import ActuatorLag
 from services.controller.corridor import Corridor
-from services.controller.fl import FLGains
+from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 
 LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
@@ -34,6 +34,7 @@ class TrackerLimits:
     v_max_mps: float
     w_max_radps: float
     max_curvature: float = math.inf   # Ackermann: tan(steer_max) / L
+    decel_mps2: float = math.inf      # the hardest braking a safety stop uses (inf: at once)
 
     def w_limit(self, v: float) -> float:
         return min(self.w_max_radps, abs(v) * self.max_curvature)
@@ -61,8 +62,9 @@ class PathTracker:
     def __init__(self, path: Path, law: SteeringLaw, limits: TrackerLimits, *, speed_mps: float,
                  loc_timeout_s: float = LOC_TIMEOUT_S, stop_decel_mps2: float = STOP_DECEL_MPS2, ic_vertices: int = 0,
                  schedule: np.ndarray | None = None, corridor: Corridor | None = None,
-                 lag: ActuatorLag = ActuatorLag()):
+                 lag: ActuatorLag = ActuatorLag(), period_s: float = 0.1):
         self.path = path
+        self.period_s = period_s
         self.lag = lag
         self.law = law
         self.limits = limits
@@ -130,7 +132,7 @@ class PathTracker:
         if self.finished:
             return stop("finished", "end of route reached")
         if self.halted:
-            return stop("stopped", self.halted)
+            return self._brake(last, age, loc) or stop("stopped", self.halted)
         if last is None:
             return stop("waiting", f"no localization yet ({loc.status if loc else 'nothing received'})")
         if loc is not None and loc.status == "lost":
@@ -175,13 +177,28 @@ class PathTracker:
         res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
-            return stop("stopped", res.stop_reason)
+            return self._brake(last, age, loc) or stop("stopped", res.stop_reason)
         if res.v_mps is not None and math.isfinite(res.v_mps):
             v = max(0.0, min(res.v_mps, self.limits.v_max_mps))
         w_limit = self.limits.w_limit(v)
         w = max(-w_limit, min(w_limit, res.w_radps))
         self._last_cmd = (v, w)
         return Decision(v, w, "tracking", reason, vertex, dist, lat, head, age, res)
+
+    def _brake(self, last: LocState | None, age: float, loc: LocState | None) -> Decision | None:
+        """A law's safety stop as a manoeuvre that keeps the robot inside: brake at the robot's limit while
+        steering along the route (feedback linearization at the braking speed), not v = w = 0, which drops
+        the counter-steer and lets the robot coast off. None once at rest, or without a usable estimate
+        (then there is nothing to steer by: plain stop)."""
+        v = max(0.0, self._last_cmd[0] - self.limits.decel_mps2 * self.period_s)
+        if v <= 1e-6 or last is None or age > self.loc_timeout_s or (loc is not None and loc.status == "lost"):
+            return None
+        _, dist, lat, head = self.route_errors(last)
+        kappa = float(np.interp(dist, self.path.s, self.path.curvature))
+        w_limit = self.limits.w_limit(v)
+        w = max(-w_limit, min(w_limit, fl_angular_rate(v, lat, head, kappa, self._fallback.gains)))
+        self._last_cmd = (v, w)
+        return Decision(v, w, "stopping", f"{self.halted}: braking along the route", last.vertex, dist, lat, head, age)
 
     def _run_law(self, ctx: StepContext) -> tuple[LawResult, str]:
         """The law's result, or feedback linearization for this step when the law failed numerically (a
