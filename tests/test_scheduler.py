@@ -164,21 +164,21 @@ def no_limits(**kw) -> SchedulerParams:
     return SchedulerParams(**{**base, **kw})
 
 
-def test_guard_limits_are_a_share_of_eq_4_2_thresholds_with_the_robots_turn_rate_limit():
+def test_guard_limits_are_a_share_of_eq_4_2_thresholds_and_of_the_robots_turn_rate_limit():
     p = SchedulerParams(lambda_L=0.5, lambda_H=20.0, lambda_omega=1.0, guard_share=0.8, w_max=1.2)
-    np.testing.assert_allclose(guard_limits(p), [0.4, 0.8 * math.radians(20.0), 0.8])
-    # a lambda_omega above the robot's limit: the limit counts (0.8 * 1.2)
-    assert guard_limits(SchedulerParams(lambda_omega=1.5, w_max=1.2))[2] == pytest.approx(0.96)
-    assert guard_limits(SchedulerParams(lambda_omega=1.5))[2] == pytest.approx(1.2)   # w_max unknown
+    # turn rate: min(lambda_omega 1.0, 0.8 * 1.2) = 0.96
+    np.testing.assert_allclose(guard_limits(p), [0.4, 0.8 * math.radians(20.0), 0.96])
+    assert guard_limits(SchedulerParams(lambda_omega=1.0, w_max=2.0))[2] == pytest.approx(1.0)   # lambda_omega
+    assert guard_limits(SchedulerParams(lambda_omega=1.5))[2] == pytest.approx(1.5)   # w_max unknown
 
 
 def test_proportional_growth_caps_the_turn_that_overshot():
-    """The turn of issue 18: 0.86 rad/s at 0.7 m/s, limit 1.2 rad/s. Eq. 4.2 (lambda_omega = 1.5 here)
+    """The turn of issue 18: 0.86 rad/s at 0.7 m/s, limit 1.2 rad/s. Eq. 4.2 (0.86 < lambda_omega 1.0)
     raises it to 0.9 m/s, where w = 0.86 * 0.9 / 0.7 = 1.106 rad/s; the guard allows w <= 0.8 * 1.2 = 0.96,
     reached at v = 0.96 * 0.7 / 0.86 = 0.7814 m/s."""
     cap = growth_cap(np.array([[0.7]]), np.array([[0.86]]), 0.96, 0.1)
     assert cap[0] == pytest.approx(0.96 * 0.7 / 0.86) == pytest.approx(0.78140, abs=1e-5)
-    # with lambda_omega = 1.0 (the thesis's), the bound is 0.8 * 1.0: no raise above 0.8 * 0.7 / 0.86 = 0.651
+    # a robot limited to 1.0 rad/s: the bound is 0.8 * 1.0, no raise above 0.8 * 0.7 / 0.86 = 0.651
     assert growth_cap(np.array([[0.7]]), np.array([[0.86]]), 0.8, 0.1)[0] == pytest.approx(0.65116, abs=1e-5)
     # nothing seen, or a zero turn rate: nothing to cap
     assert np.isinf(growth_cap(np.array([[np.nan]]), np.array([[np.nan]]), 0.8, 0.1)[0])
@@ -206,8 +206,9 @@ def test_the_worst_pass_nearby_and_its_speed():
     s = np.arange(5.0)                                 # 1 m apart, radius 1 m: a vertex and its two neighbours
     lo, hi = neighbourhoods(s, 1.0)
     assert lo.tolist() == [0, 0, 1, 2, 3] and hi.tolist() == [2, 3, 4, 5, 5]
+    # |value| / speed: 0.1, 0.25, 0.0667, -, 0.06; vertex 3 sees 0.2 at 3 m/s (0.0667) over 0.3 at 5 (0.06)
     worst, at_v = worst_nearby(np.array([0.1, -0.5, 0.2, np.nan, 0.3]), np.array([1.0, 2.0, 3.0, 4.0, 5.0]), lo, hi)
-    assert worst.tolist() == [0.5, 0.5, 0.5, 0.3, 0.3] and at_v.tolist() == [2.0, 2.0, 2.0, 5.0, 5.0]
+    assert worst.tolist() == [0.5, 0.5, 0.5, 0.2, 0.3] and at_v.tolist() == [2.0, 2.0, 2.0, 3.0, 5.0]
     worst, _ = worst_nearby(np.array([0.1, np.nan, np.nan, np.nan, np.nan]), np.ones(5), *neighbourhoods(s, 0.0))
     assert worst[0] == 0.1 and np.all(np.isnan(worst[1:]))
 
@@ -232,8 +233,8 @@ def passes_v(e_lat, e_head_deg, w, v):
 
 def test_a_sharp_turn_is_held_where_eq_4_2_alone_raises_it():
     """21 vertices 1 m apart at 0.7 m/s; a turn at vertex 10 took 0.86 rad/s, 0.2 elsewhere; lambda_omega
-    1.0, w_max 1.2. Eq. 4.2 raises every vertex to 0.9. The guard: bound 0.8 * 1.0 = 0.8 rad/s; within
-    3 m of the turn the cap is 0.8 * 0.7 / 0.86 = 0.651 < 0.7: kept at 0.7; beyond, 0.8 * 0.7 / 0.2 = 2.8."""
+    1.0, w_max 1.2. Eq. 4.2 raises every vertex to 0.9. The guard: bound min(1.0, 0.8 * 1.2) = 0.96 rad/s;
+    within 3 m of the turn the cap is 0.96 * 0.7 / 0.86 = 0.7814; beyond, 0.96 * 0.7 / 0.2 = 3.36."""
     n = 21
     s, xy = straight(n)
     w = np.full(n, 0.2)
@@ -242,11 +243,15 @@ def test_a_sharp_turn_is_held_where_eq_4_2_alone_raises_it():
     prev = np.full(n, 0.7)
     history = [(prev, pa)]
     on = plan(prev, pa, history, s, xy, no_limits(w_max=1.2))
-    expect = np.where(np.abs(s - 10) <= 3.0, 0.7, 0.9)
+    expect = np.where(np.abs(s - 10) <= 3.0, 0.96 * 0.7 / 0.86, 0.9)
     np.testing.assert_allclose(on.schedule, expect)
     assert on.decisions.tolist() == [INCREASE] * n        # eq. 4.2's decisions, reported as they were
-    assert on.caps.by[10] == 2 and on.caps.v_cap[10] == pytest.approx(0.8 * 0.7 / 0.86)
-    assert any(n_.startswith("guard: 7 increases capped (turn rate 7), 7 of them") for n_ in on.notes)
+    assert on.caps.by[10] == 2 and on.caps.v_cap[10] == pytest.approx(0.78140, abs=1e-5)
+    assert "guard: 7 increases capped (turn rate 7), 0 of them kept at their speed" in on.notes
+    # a robot limited to 1.0 rad/s: bound 0.8, cap 0.8 * 0.7 / 0.86 = 0.651 < 0.7: kept at 0.7
+    held = plan(prev, pa, history, s, xy, no_limits(w_max=1.0))
+    np.testing.assert_allclose(held.schedule, np.where(np.abs(s - 10) <= 3.0, 0.7, 0.9))
+    assert "guard: 7 increases capped (turn rate 7), 7 of them kept at their speed" in held.notes
     off = plan(prev, pa, history, s, xy, no_limits(w_max=1.2, guard=False))
     np.testing.assert_allclose(off.schedule, 0.9)
     assert off.caps is None and not any("guard" in n_ for n_ in off.notes)
@@ -267,9 +272,12 @@ def test_with_the_guard_off_plan_is_the_thesis_rule():
     thesis = next_schedule(first.schedule, pa, s, xy, p)
     np.testing.assert_array_equal(prop.schedule, thesis.schedule)
     assert prop.schedule[12] == pytest.approx(0.26) and prop.schedule[10] == pytest.approx(0.7)
-    # the guard on: w 0.9 at 0.5 m/s reaches 0.8 at 0.444 m/s, below 0.5: nothing is raised
+    # the guard on, bound min(1.0, 0.8 * 1.2) = 0.96 rad/s: within 3 m of the start and end segments (s <= 4,
+    # s >= 6) the 0.9 rad/s passed at 0.4 m/s reach it at 0.96 * 0.4 / 0.9 = 0.427 m/s; within 3 m of
+    # vertex 12 its 0.3 m reach 0.8 * 0.15 = 0.12 m at 0.2 m/s: every increase is kept at its speed
     guarded = plan(first.schedule, pa, [(first.schedule, pa)], s, xy, SchedulerParams(**{**p.__dict__, "guard": True}))
-    assert np.all(guarded.schedule <= first.schedule + 1e-12) and guarded.schedule[12] == pytest.approx(0.26)
+    np.testing.assert_allclose(guarded.schedule, np.where(np.arange(n) == 12, 0.26, first.schedule))
+    assert guarded.caps.v_cap[4] == pytest.approx(0.96 * 0.4 / 0.9) and guarded.caps.v_cap[10] == pytest.approx(0.2)
 
 
 def test_the_guard_reads_the_latest_trials_of_the_history():

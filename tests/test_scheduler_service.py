@@ -38,7 +38,8 @@ def status(trial: int, i: int, state: str, lateral_m: float, w: float = 0.1, v: 
         distance_m=0.25 * i, lateral_m=float(lateral_m), heading_rad=0.01, v_cmd_mps=v, w_cmd_radps=w,
         solve_ms=0.1, iterations=0, loc_age_s=0.0, rejected_msgs=0, experiences_sent=0, experiences_pending=0,
         window_experiences=0, hyper_version=0, w_ff_radps=0.0, pred_x_m=[], pred_y_m=[], pred_theta_rad=[],
-        sigma_lat_m=0.0, sigma_head_rad=0.0, solver_status="")
+        sigma_lat_m=0.0, sigma_head_rad=0.0, solver_status="", variance_scale=1.0, pred_sigma_lat_m=[],
+        pred_sigma_head_rad=[])
 
 
 class Rig:
@@ -199,7 +200,7 @@ def test_bad_requests_get_a_reason_and_the_service_keeps_running(rig):
 
 def test_the_guard_holds_a_turn_the_thesis_rule_would_speed_up(tmp_path):
     """A turn at 23.75-26.25 m took 0.7 rad/s at a commanded 0.45 m/s (eq. 4.2 raises it: 0.7 < 1.0).
-    The guard's bound is 0.8 * min(1.0, w_max 1.2) = 0.8 rad/s, reached at 0.8 * 0.45 / 0.7 = 0.514 m/s:
+    The guard's bound is min(1.0, 0.8 * w_max 1.2) = 0.96 rad/s, reached at 0.96 * 0.45 / 0.7 = 0.617 m/s:
     the turn and 3 m either side rise only that far, the rest by gamma1 to 0.7."""
     rig = Rig(tmp_path, replace(PARAMS, guard=True, w_max=1.2))
     try:
@@ -208,7 +209,7 @@ def test_the_guard_holds_a_turn_the_thesis_rule_would_speed_up(tmp_path):
         v2 = rig.wait_version(2)
         d, v = np.asarray(v2.decisions), np.asarray(v2.v_mps)
         assert np.all(d[20:180] == INCREASE)                    # eq. 4.2's decisions, as they were
-        assert np.allclose(v[83:118], 0.8 * 0.45 / 0.7) and v[40] == pytest.approx(0.7)
+        assert np.allclose(v[83:118], 0.96 * 0.45 / 0.7) and v[40] == pytest.approx(0.7)
         assert v[150] == pytest.approx(0.7)
         assert any(n.startswith("guard: ") and "turn rate" in n for n in v2.notes), v2.notes
     finally:

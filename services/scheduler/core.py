@@ -25,17 +25,20 @@ new speed what eq. 4.2 asks of the last pass, with a margin, and caps the increa
 lowers a speed: decreases stay eq. 4.2's). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
 |omega_cmd| of 4.2.2) and vertex i, over the latest `guard_trials` trials t:
 
-  (G1) E_t,i = max of c over the passes within guard_radius_m of vertex i, V_t,i = the commanded speed
-       of that pass (the scheduled one where none was recorded): a peak moves a little with speed;
+  (G1) of the passes of trial t within guard_radius_m of vertex i (a peak moves a little with speed),
+       the one with the largest c / v: E_t,i its value, V_t,i its commanded speed (the scheduled one
+       where none was recorded);
   (G2) proportional growth from the latest pass, c(v) = E_last v / V_last: the turn rate follows the
        route's curvature, omega = v kappa, and the controller's corrections grow with speed with it;
        and the least-squares line c(v) = a + b v through the trials' (V, E) when their speeds spread
        over at least gamma1 / 2 (a closer fit is noise) and b > 0: growth faster than proportional,
        as a drive lag makes near a robot's limits;
-  (G3) the cap v_cap,i = the lowest speed at which either (G2) reaches guard_share * lambda_c, with
-       lambda_omega replaced by the robot's limit w_max where that is lower (eq. 4.2 alone never sees a
-       saturated turn rate exceed a lambda_omega set above w_max); then v_sugg,i <- max(v_sched,i,
-       min(v_sugg,i, v_cap,i)) for the increased vertices, before eq. 4.3-4.4.
+  (G3) the cap v_cap,i = the lowest speed at which either (G2) reaches its bound: guard_share * lambda_L,
+       guard_share * lambda_H, and for the turn rate min(lambda_omega, guard_share * w_max): eq. 4.2's
+       own turn-rate threshold, and headroom under the robot's limit for the corrections on top of the
+       predicted peak (eq. 4.2 alone never sees a saturated turn rate exceed a lambda_omega set at or
+       above w_max); then v_sugg,i <- max(v_sched,i, min(v_sugg,i, v_cap,i)) for the increased
+       vertices, before eq. 4.3-4.4.
 
 The learned model's variance at the new speed bin (thesis 5.3.2, 7.2) would be a third prediction, but
 it lives in the store and describes the disturbance, not the errors and turn rates the controller will
@@ -75,7 +78,8 @@ class SchedulerParams:
     guard: bool = True           # cap increases at the speed the next trial can be expected to hold (module doc)
     w_max: float | None = None   # the robot's turn-rate limit (rad/s), set by the deployment; None: unknown,
                                  # the guard then holds predicted turn rates under lambda_omega alone
-    guard_share: float = 0.8     # predictions at the new speed may reach this share of the limits (G3)
+    guard_share: float = 0.8     # predictions at the new speed may reach this share of lambda_L, lambda_H
+                                 # and w_max (G3)
     guard_radius_m: float = 3.0  # passes this close to a vertex count as its own (G1)
     guard_trials: int = 3        # the latest trials the growth with speed is fitted over (G2)
 
@@ -280,8 +284,8 @@ class GuardCaps:
 
 def guard_limits(p: SchedulerParams) -> np.ndarray:
     """G3's bounds on the predicted |e_L| (m), |e_H| (rad) and |omega_cmd| (rad/s)."""
-    w_lim = p.lambda_omega if p.w_max is None else min(p.lambda_omega, p.w_max)
-    return p.guard_share * np.array([p.lambda_L, math.radians(p.lambda_H), w_lim])
+    w_lim = p.lambda_omega if p.w_max is None else min(p.lambda_omega, p.guard_share * p.w_max)
+    return np.array([p.guard_share * p.lambda_L, p.guard_share * math.radians(p.lambda_H), w_lim])
 
 
 def neighbourhoods(s: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -297,14 +301,15 @@ def pass_speeds(sched: np.ndarray, passes: VertexPasses) -> np.ndarray:
 
 
 def worst_nearby(values: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """G1: per vertex, the largest value passed within its neighbourhood and the speed of that pass
-    (both NaN where the neighbourhood has no pass)."""
-    x = np.where(np.isfinite(values) & np.isfinite(v) & (v > 0), np.abs(values), -np.inf)
-    worst, at_v = np.full(len(x), np.nan), np.full(len(x), np.nan)
-    for i in range(len(x)):
-        j = lo[i] + int(np.argmax(x[lo[i]:hi[i]]))
-        if np.isfinite(x[j]):
-            worst[i], at_v[i] = x[j], v[j]
+    """G1: per vertex, of the passes within its neighbourhood the one with the largest |value| / speed
+    (the steepest proportional growth): its |value| and speed (both NaN where there is no pass)."""
+    ok = np.isfinite(values) & np.isfinite(v) & (v > 0)
+    ratio = np.where(ok, np.abs(values) / np.where(ok, v, 1.0), -np.inf)
+    worst, at_v = np.full(len(ratio), np.nan), np.full(len(ratio), np.nan)
+    for i in range(len(ratio)):
+        j = lo[i] + int(np.argmax(ratio[lo[i]:hi[i]]))
+        if np.isfinite(ratio[j]):
+            worst[i], at_v[i] = abs(values[j]), v[j]
     return worst, at_v
 
 
