@@ -161,7 +161,7 @@ ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopping", 
 @dataclass(frozen=True, kw_only=True)
 class ControllerStatus(Message):
     """One per control step: what the controller saw, decided and how long it took."""
-    SCHEMA_VERSION = 2
+    SCHEMA_VERSION = 3
     stamp_s: float
     tick: int
     trial: int
@@ -192,6 +192,12 @@ class ControllerStatus(Message):
     sigma_lat_m: float
     sigma_head_rad: float
     solver_status: str
+    # v3: the online check of the predicted spread (services/controller/calibration.py): its factor on each
+    # step's predicted standard deviation, and the route-frame 1-sigma of each predicted pose as the law
+    # used it (empty without a spread)
+    spread_factors: list[float]
+    pred_sigma_lat_m: list[float]
+    pred_sigma_head_rad: list[float]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -220,6 +226,7 @@ class NominalModel(Message):
     prior_std_per_mps: tuple[float, float, float]
     prior_std_per_radps: tuple[float, float, float]
     prior_scale: tuple[float, float, float]          # of the default prior's shape, from the teach residuals
+    spread_factors: list[float]       # per horizon step, on the predicted spread, to start the online check from
     residual_samples: int
     notes: list[str]                  # what could not be identified, and what was kept instead
 

@@ -32,7 +32,7 @@ from common.scenario import Scenario, load_scenario
 from deploy.configs import service_configs, write_service_configs
 from deploy.launcher import LaunchError, Launcher
 from deploy.learned import predict_trial
-from deploy.metrics import TrialRecord, trial_metrics, truth_series
+from deploy.metrics import TrialRecord, outside_3sigma_fraction, trial_metrics, truth_series
 from deploy.recorder import McapRecorder
 from deploy.router import free_port
 from services.bridge.teach_driver import smooth_waypoints
@@ -476,6 +476,9 @@ def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, h
     # experiences_total: every experience the store ever ingested on the route (evicted ones and
     # other nominal models' included), not what the fit used: that is experiences_fit_*
     m = trial_metrics(exp.truth_path, rec, series, *limits, experiences_total=ingested)
+    m["outside_3sigma_fraction"] = outside_3sigma_fraction(exp.path, exp.truth_path, rec)
+    # the online calibration's factor on the 1 s prediction's spread when the trial ended (calibration.py)
+    m["spread_factor_1s"] = rec.status[-1].spread_factors[-1] if rec.status and rec.status[-1].spread_factors else None
     nominal, learned = d.rmse()
     if rec.trial in exp.schedules:
         v = np.asarray(exp.schedules[rec.trial].v_mps)

@@ -5,6 +5,7 @@ route polyline); the controller's own estimate is reported beside them under `*_
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,23 +78,42 @@ def _pct(a: np.ndarray, q: float) -> float:
     return float(np.percentile(a, q)) if a.size else 0.0
 
 
-def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_limit_m: float,
-                  heading_limit_rad: float, experiences_total: int) -> dict:
-    """One entry of summary.json `trials` (keys as DESIGN.md, then extensions)."""
-    # the repeat proper: from the start until the controller declared the end of the route
+def _window(rec: TrialRecord, series: TrialSeries) -> tuple[float, float, float | None]:
+    """(start, end, first stop) of the repeat proper: from the start until the controller declared the end
+    of the route (or the trial ended); a safety stop's time, if the controller stopped before that."""
     finish = next((s.stamp_s for s in rec.status if s.state == "finished"), None)
     t0 = series.stamp_s[0] if series.stamp_s.size else 0.0
     t_end = finish if finish is not None else (series.stamp_s[-1] if series.stamp_s.size else t0)
+    stop = next((s.stamp_s for s in rec.status if s.state in ("stopping", "stopped")), None)
+    return t0, t_end, stop
+
+
+def _after_stop(series: TrialSeries, t_end: float, t_stop: float | None, lat_lim: float, head_lim: float) -> dict:
+    """The seconds between a safety stop and the end of the trial, counted apart (truth)."""
+    after = (series.stamp_s > t_stop) & (series.stamp_s <= t_end + 1e-9) if t_stop is not None else \
+        np.zeros(series.stamp_s.shape, dtype=bool)
+    lat, head = series.lateral_m[after], series.heading_rad[after]
+    return {"after_stop_steps": int(np.count_nonzero(after)),
+            "after_stop_violations": int(np.count_nonzero((np.abs(lat) > lat_lim) | (np.abs(head) > head_lim))),
+            "max_lateral_m_after_stop": _max_abs(lat) if lat.size else None}
+
+
+def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_limit_m: float,
+                  heading_limit_rad: float, experiences_total: int) -> dict:
+    """One entry of summary.json `trials` (keys as DESIGN.md, then extensions). Truth and estimate are
+    measured over the same window, the seconds after a safety stop included (and counted apart)."""
+    t0, t_end, t_stop = _window(rec, series)
     active = series.stamp_s <= t_end + 1e-9
     lat, head = series.lateral_m[active], series.heading_rad[active]
     violations = int(np.count_nonzero((np.abs(lat) > lateral_limit_m) | (np.abs(head) > heading_limit_rad)))
     travel = max(0.0, float(t_end - t0))
     covered = float(np.clip(series.distance_m[active].max(initial=0.0), 0.0, path.length_m))
     features = [l.matched_features for l in rec.loc if l.has_pose and l.matched_features is not None]
-    est = [s for s in rec.status if s.state in ("tracking", "holding")]
+    est = [s for s in rec.status if s.state in ("tracking", "holding", "stopping", "stopped") and s.stamp_s <= t_end + 1e-9]
+    steered = [s for s in est if s.state in ("tracking", "holding")]
     est_lat = np.array([s.lateral_m for s in est])
     est_head = np.array([s.heading_rad for s in est])
-    solve = np.array([s.solve_ms for s in est])
+    solve = np.array([s.solve_ms for s in steered])
     w_cmd = np.array([s.w_cmd_radps for s in est])
     return {
         "trial": rec.trial,
@@ -118,7 +138,29 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
         "max_heading_rad_est": _max_abs(est_head),
         "rms_heading_rad_est": _rms(est_head),
         "max_w_cmd_radps": _max_abs(w_cmd),
+        **_after_stop(series, t_end, t_stop, lateral_limit_m, heading_limit_rad),
         "control_steps": len(rec.status),
         "end_reason": rec.end_reason,
         "wall_time_s": rec.wall_s,
     }
+
+
+def outside_3sigma_fraction(route: Path, truth_path: Path, rec: TrialRecord) -> float | None:
+    """The share of predictions whose realized error one horizon later (truth, lateral and heading
+    against the route) left the predicted 3-sigma region; None for a law without a predicted spread.
+    The prediction of the status of tick k is x_K of tick k + K in the controller's route frame."""
+    truth = {t.tick: t for t in rec.truth}
+    checked = outside = 0
+    for s in rec.status:
+        if s.state != "tracking" or not s.pred_sigma_lat_m or not s.pred_x_m:
+            continue
+        t = truth.get(s.tick + len(s.pred_x_m))
+        if t is None:
+            continue
+        pred = route.project((s.pred_x_m[-1], s.pred_y_m[-1], s.pred_theta_rad[-1]), s.vertex)
+        real = truth_path.project((t.x_world_m, t.y_world_m, t.theta_world_rad))
+        d_head = math.remainder(real.heading_rad - pred.heading_rad, 2 * math.pi)
+        checked += 1
+        outside += (abs(real.lateral_m - pred.lateral_m) > 3.0 * s.pred_sigma_lat_m[-1]
+                    or abs(d_head) > 3.0 * s.pred_sigma_head_rad[-1])
+    return outside / checked if checked else None

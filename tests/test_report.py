@@ -80,7 +80,7 @@ MODEL = {"model_tag": "unicycle-dt100ms-tauv370ms-tauw393ms", "tau_v_s": 0.37, "
          "dead_time_v_s": 0.0, "dead_time_w_s": 0.0, "gain_v": 0.999, "gain_w": 1.0, "rate_limit_v_mps2": 0.82,
          "rate_limit_w_radps2": None, "actuator_tau_s": [0.37, 0.393], "prior_std_base": [0.002, 0.0015, 0.002],
          "prior_std_per_mps": [0.007, 0.006, 0.005], "prior_std_per_radps": [0.003, 0.003, 0.009],
-         "prior_scale": [1.64, 0.74, 0.6], "notes": ["w: <no> rate limit seen"]}
+         "prior_scale": [1.64, 0.74, 0.6], "spread_factors": [1.0, 1.2], "notes": ["w: <no> rate limit seen"]}
 
 
 def render(tmp_path, series, entries, dist=None, model=None):

@@ -1,17 +1,26 @@
-"""The controller's pure core: the tracking law plus the experiences each step yields."""
+"""The controller's pure core: the tracking law, the experiences each step yields, and the online check
+of the predicted spread (calibration.py)."""
 from __future__ import annotations
+
+import math
+
+import numpy as np
 
 from common.messages import LocState
 from common.path import Path
+from services.controller.calibration import Prediction, SpreadCalibration
 from services.controller.experience import ExperienceBuilder, Observation
 from services.controller.tracker import Decision, PathTracker
 
 
 class ControllerCore:
-    def __init__(self, path: Path, tracker: PathTracker, period_s: float):
+    def __init__(self, path: Path, tracker: PathTracker, period_s: float,
+                 calibration: SpreadCalibration | None = None):
         self.path = path
         self.tracker = tracker
         self.builder = ExperienceBuilder(path, period_s, lag=tracker.lag)
+        self.calibration = calibration or SpreadCalibration(horizon=0)
+        self.period_s = period_s
 
     def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, Observation | None]:
         """One control step at robot tick `tick`: the command to apply now, and the disturbance
@@ -20,6 +29,35 @@ class ControllerCore:
         # experiences only from map-refined estimates: a VO-only pose drifts, and the model would learn it
         if loc is not None and loc.status == "ok":
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
-        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at)
+        if loc is not None and loc.has_pose:
+            self._realize(loc)
+        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.calibration.spread_factors())
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         return decision, obs
+
+    def _realize(self, loc: LocState) -> None:
+        """Check the predictions made for this estimate's capture tick against it."""
+        pose, dist, _, _ = self.tracker.route_errors(loc)
+        cov = self.tracker.route_cov(loc)
+        th = float(self.path.tangent_at(dist))
+        n = np.array([-math.sin(th), math.cos(th)])
+        self.calibration.realize(loc.capture_tick, pose, float(n @ cov[:2, :2] @ n), float(cov[2, 2]))
+
+    def keep_prediction(self, tick: int, d: Decision) -> None:
+        """After the command is out: the law's predicted poses x_1..x_K (of ticks tick + 1..K) with their
+        spread, for the online check. Their places along the route come from the distance driven along
+        the prediction (only the route's direction there is needed)."""
+        law = d.law
+        unc = law.uncertainty if law is not None else None
+        if unc is None or not unc.horizon_sigma_lat_m or law.predicted is None or d.state != "tracking":
+            return
+        X = np.asarray(law.predicted)
+        steps = np.hypot(*np.diff(X[:, :2], axis=0, prepend=X[:1, :2]).T)
+        s = d.distance_m + d.v_mps * self.period_s + np.cumsum(steps)
+        th = np.asarray(self.path.tangent_at(s))
+        scales = self.calibration.scales
+        self.calibration.predict(tick, [
+            Prediction(j + 1, (float(X[j, 0]), float(X[j, 1]), float(X[j, 2])),
+                       (-math.sin(th[j]), math.cos(th[j])), unc.horizon_sigma_lat_m[j], unc.horizon_sigma_head_rad[j],
+                       float(scales[j]) if j < len(scales) else 1.0)
+            for j in range(len(X))])

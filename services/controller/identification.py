@@ -18,8 +18,10 @@ A-priori uncertainty. The identified model's one-period residuals on the teach p
 body frame, from the teach pass's pose estimates and the commands), give its scale: the prior keeps
 the shape std = base + per_mps |v| + per_radps |w| (uncertainty.PriorStd: errors grow with the distance
 and the turn of a period) and each component is scaled so that the residuals have unit RMS against it,
-c_i^2 = mean(g_i^2 / std_i^2), the maximum-likelihood scale of a Gaussian. One teach speed cannot
-separate the speed dependence from the base, so the shape stays an assumption and the level is measured;
+c_i^2 = mean(g_i^2 / std_i^2), the maximum-likelihood scale of a Gaussian, or more where the residuals'
+99th percentile lies beyond a Gaussian's (a side slope crossed once is a heavy tail). One teach speed
+cannot separate the speed dependence from the base, so the shape stays an assumption and the level is
+measured;
 the controller's online check (calibration.py) corrects the level further while it drives. The
 localization noise between consecutive estimates counts in, which errs on the cautious side.
 """
@@ -38,6 +40,7 @@ from services.controller.experience import ExperienceBuilder
 from services.controller.uncertainty import PriorStd
 
 MAX_DEAD_PERIODS = 5
+MAX_HORIZON = 30          # periods of spread factors identified (the NMPC's horizon takes its first K)
 # a longer dead time must explain the data this much better (a speed held constant for most of the pass
 # leaves the residual at the odometry's noise whatever the dead time)
 DEAD_TIME_GAIN = 0.05
@@ -192,10 +195,11 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> tuple[n
 
 
 def scaled_prior(G: np.ndarray, U: np.ndarray, shape: PriorStd = PriorStd()) -> tuple[PriorStd, np.ndarray]:
-    """The prior of `shape` scaled per component so the residuals have unit RMS against it; and the scales."""
-    std0 = (np.asarray(shape.base) + np.outer(np.abs(U[:, 0]), shape.per_mps)
-            + np.outer(np.abs(U[:, 1]), shape.per_radps))
-    scale = np.sqrt(np.mean((G / std0) ** 2, axis=0))
+    """The prior of `shape` scaled per component to the residuals' spread; and the scales."""
+    z = np.abs(G / shape.std(U))
+    # the RMS, or wider where the residuals have heavy tails (a side slope crossed once): its 99th
+    # percentile is where a Gaussian's would be
+    scale = np.maximum(np.sqrt(np.mean(z ** 2, axis=0)), np.quantile(z, 0.99, axis=0) / 2.576)
     c = tuple(float(x) for x in scale)
     prior = PriorStd(base=tuple(b * s for b, s in zip(shape.base, c)),
                      per_mps=tuple(p * s for p, s in zip(shape.per_mps, c)),
@@ -207,6 +211,23 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def horizon_factors(G: np.ndarray, U: np.ndarray, prior: PriorStd, steps: int = MAX_HORIZON) -> np.ndarray:
+    """Per horizon step j, the factor on the prior's spread that held the teach pass's own errors: its
+    residuals summed over j consecutive periods against the spread the prior gives them (independent per
+    period, as the sigma-point transform propagates it). A disturbance tied to a place (a slope's push)
+    repeats period after period, and the sum grows like j where the prior's spread grows like sqrt(j):
+    the online check (calibration.py) starts from these factors. Lateral and heading alike; the factor
+    holds 99 % of them where a Gaussian's 2.576 sigma would."""
+    std = prior.std(U)
+    out = np.ones(steps)
+    for j in range(1, min(steps, len(G)) + 1):
+        kernel = np.ones(j)
+        z = [np.abs(np.convolve(G[:, i], kernel, "valid")) / np.sqrt(np.convolve(std[:, i] ** 2, kernel, "valid"))
+             for i in (1, 2)]
+        out[j - 1] = max(1.0, float(np.quantile(np.maximum(*z), 0.99)) / 2.576)
+    return out
+
+
 def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd()) -> NominalModel:
     """The nominal model of the robot that drove this teach pass, as the controller will use it."""
     u, y = rec.arrays()
@@ -216,8 +237,9 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
     notes = list(drive.notes)
     if len(G) >= MIN_SAMPLES:
         prior, scale = scaled_prior(G, U, shape)
+        factors = horizon_factors(G, U, prior)
     else:
-        prior, scale = shape, np.ones(3)
+        prior, scale, factors = shape, np.ones(3), np.ones(MAX_HORIZON)
         notes.append(f"only {len(G)} teach residuals (no teach pose estimates?): the default prior is kept")
     fit = lambda c, attr, default: getattr(c, attr) if c is not None else default   # noqa: E731
     return NominalModel(
@@ -231,4 +253,4 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         samples_v=fit(drive.v, "samples", 0), samples_w=fit(drive.w, "samples", 0),
         actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
         prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
-        residual_samples=len(G), notes=notes)
+        spread_factors=[float(f) for f in factors], residual_samples=len(G), notes=notes)

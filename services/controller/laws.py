@@ -41,6 +41,9 @@ class StepContext:
     pose_cov: np.ndarray | None = None   # 3x3 covariance of `pose` (route frame), from the localizer
     corridor: Corridor | None = None   # per-vertex limits (thesis 7.3), for the constrained laws
     v_max_mps: float = float("inf")      # the robot's speed limit (the constrained laws choose v)
+    # per horizon step, the factor on the predicted standard deviations from the online check of the
+    # predicted spread (calibration.py); empty: none
+    spread_factors: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,9 @@ class UncertaintyReport:
     speed_scale: float = 1.0    # RC: the share of the scheduled speeds the speed ladder allowed
     violation: float = 0.0      # C/RC: the largest tightened-corridor violation the plan needed
     worst_case: int = -1        # MM: index into minmax.SIGNS of the worst boundary sequence
+    # route-frame 1-sigma of the predicted x_1..x_K (what the online calibration checks)
+    horizon_sigma_lat_m: tuple[float, ...] = ()
+    horizon_sigma_head_rad: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)

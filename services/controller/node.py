@@ -23,6 +23,7 @@ from common.messages import (NAME_RE, BridgeStatus, Clock, ControllerStatus, Cor
 from common.path import Path
 from common.service import Control, Service, service_main
 from common.store_client import ExperienceOutbox, WindowCache
+from services.controller.calibration import SpreadCalibration
 from services.controller.config import ControllerConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
@@ -68,6 +69,7 @@ class ControllerService(Service):
         self.gains = cfg.fl
         # the nominal model per route, identified on its teach pass (nominal_models.py)
         self.nominal = NominalModels(r, cfg.period_s, FsPath(cfg.data_dir) / "models" if cfg.data_dir else None)
+        self.spread_scale: dict[tuple[str, str], np.ndarray] = {}   # (route, model) -> calibration.py's factors
         node.subscribe_queue(keys.bridge_status(r), BridgeStatus, self.inbox)
         node.subscribe_queue(keys.odom(r), Odometry, self.inbox)
         node.queryable(keys.ctrl_model(r, "*"), lambda q: self.inbox.put(("q_model", q)))
@@ -128,7 +130,9 @@ class ControllerService(Service):
                                   period_s=self.cfg.period_s)
         except (OSError, ValueError) as exc:
             return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
-        self.core = ControllerCore(path, tracker, self.cfg.period_s)
+        # the calibration's scale carries over from earlier trials on this route under this model
+        self.core = ControllerCore(path, tracker, self.cfg.period_s, SpreadCalibration(
+            settings.horizon, self._spread_scales(req.path_id, tracker.lag.model_tag)))
         self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
         self._use_model(tracker.lag.model_tag)
         if self.cache is not None:
@@ -139,6 +143,16 @@ class ControllerService(Service):
         return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
                           f"with {self.cfg.algorithm}, nominal model {tracker.lag.model_tag}")
 
+    def _spread_scales(self, path_id: str, model_tag: str) -> np.ndarray | None:
+        """Where the online check of the predicted spread starts: where the last trial on this route under
+        this model left it, else the teach pass's factors (identification.py), else nothing widened."""
+        if (path_id, model_tag) in self.spread_scale:
+            return self.spread_scale[(path_id, model_tag)]
+        model = self.nominal.of(path_id)
+        if model is None or model.model_tag != model_tag:
+            return None
+        return np.square(model.spread_factors[:self.cfg.nmpc.horizon])
+
     def _use_model(self, tag: str) -> None:
         """The trial's nominal model names its experiences and selects the windows and fits learned from."""
         self.model_tag = tag
@@ -148,6 +162,8 @@ class ControllerService(Service):
             self.cache.set_model(tag)
 
     def _stop_repeat(self, ctl: Control) -> None:
+        if self.core is not None:
+            self.spread_scale[(self.path_id, self.model_tag)] = self.core.calibration.scales.copy()
         self.core = None
         notes = [self._learn_ilc()] if self.ilc is not None else []
         self.ilc = None
@@ -293,6 +309,7 @@ class ControllerService(Service):
         # the command must arrive; a status may be dropped under congestion rather than stall the loop
         self.node.publish(self.k_status, self._status(d, now_s, tick, solve_ms, window_n, hyper_version),
                           droppable=True)
+        self.core.keep_prediction(tick, d)
         if self.models is not None and d.v_mps > 0:
             # the next window's GP now, while the robot drives on this command (local_model.py)
             self.models.prepare(self.core.path, d.distance_m + d.v_mps * self.cfg.period_s, d.v_mps)
@@ -326,7 +343,10 @@ class ControllerService(Service):
             w_ff_radps=law.feedforward_radps if law is not None else 0.0, pred_x_m=pred[:, 0].tolist(),
             pred_y_m=pred[:, 1].tolist(), pred_theta_rad=pred[:, 2].tolist(),
             sigma_lat_m=unc.sigma_lat_max_m if unc else 0.0, sigma_head_rad=unc.sigma_head_max_rad if unc else 0.0,
-            solver_status=law.solve.status if law is not None and law.solve is not None else "")
+            solver_status=law.solve.status if law is not None and law.solve is not None else "",
+            spread_factors=list(self.core.calibration.spread_factors()) if self.core is not None else [],
+            pred_sigma_lat_m=list(unc.horizon_sigma_lat_m) if unc else [],
+            pred_sigma_head_rad=list(unc.horizon_sigma_head_rad) if unc else [])
 
     def close(self) -> None:
         if self.cache is not None:

@@ -41,6 +41,12 @@ from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
 
+def _horizon_sigmas(sig: np.ndarray) -> dict:
+    """UncertaintyReport's per-step spreads from route-frame sigmas (K, 3)."""
+    return {"horizon_sigma_lat_m": tuple(float(x) for x in sig[:, 1]),
+            "horizon_sigma_head_rad": tuple(float(x) for x in sig[:, 2])}
+
+
 @dataclass(frozen=True)
 class MinMaxStep:
     """One MM-LB-NMPC step's problem and answer, for re-solving it elsewhere (bench: CasADi/IPOPT)."""
@@ -80,7 +86,7 @@ class MMLBNMPCLaw:
         return LawResult(float(res.u[0]), predicted=X[1:],
                          solve=SolveReport(res.cost, res.iterations, res.evaluations, res.status, gp is not None),
                          uncertainty=UncertaintyReport(float(sig[:, 1].max()), float(sig[:, 2].max()),
-                                                       worst_case=worst_case))
+                                                       worst_case=worst_case, **_horizon_sigmas(sig)))
 
     def _warm_start(self, problem: HorizonProblem, w_limit: np.ndarray) -> np.ndarray:
         if self.last_plan is None:
@@ -94,8 +100,9 @@ class MMLBNMPCLaw:
         s = self.settings
         A = np.empty((problem.K, 9))
         X0, _ = problem.rollout(u0, with_jac=True, a_out=A)     # the solver's first linearization reuses it
-        cov = HorizonCovariance.at_start(ctx.pose_cov, problem.start, variance_model(gp, s), self.dt, s.sp_gamma)
-        return cov.along(problem, X0, A, problem.v, u0)[1]
+        cov = HorizonCovariance.at_start(ctx.pose_cov, problem.start, variance_model(gp, s), self.dt, s.sp_gamma,
+                                         ctx.spread_factors)
+        return cov.widened(cov.along(problem, X0, A, problem.v, u0)[1])
 
 
 @dataclass(frozen=True)
@@ -128,7 +135,8 @@ class RCLBNMPCLaw:
             return LawResult(0.0, v_mps=0.0, stop_reason=f"{why}: stopped")
         gp = self.model_for(dataclasses.replace(ctx, v_mps=self._window_speed(ctx)))
         base, _ = build_problem(ctx, s, dt, gp)
-        cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(gp, s), dt, s.sp_gamma)
+        cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(gp, s), dt, s.sp_gamma,
+                                         ctx.spread_factors)
         v, w, v_max = self._warm_start(ctx, base)
         problem = base.following(v)
         lo_lat, hi_lat, head_lim = corridor.at(problem.ref.s_m[1:])
@@ -208,9 +216,10 @@ class RCLBNMPCLaw:
                               A: np.ndarray) -> np.ndarray:
         """d sigma_lat / d v around the starting plan (uncertainty.py), for the SQP's tightening."""
         dvar_dv, dvar_dvprev = variance_speed_derivatives(cov.var, A)
-        return lateral_sigma_speed_jacobian(start.X, rung.Sigma, problem.effective(start.v)[0],
-                                            problem.ref.direction_rad[1:], rung.sig[:, 1], self.dt, dvar_dv,
-                                            dvar_dvprev, None if problem.lag is None else problem.lag.Lv)
+        raw = lateral_sigma_speed_jacobian(start.X, rung.Sigma, problem.effective(start.v)[0],
+                                           problem.ref.direction_rad[1:], rung.sig_model[:, 1], self.dt, dvar_dv,
+                                           dvar_dvprev, None if problem.lag is None else problem.lag.Lv)
+        return cov.widened(raw)
 
     def _qp_for(self, K: int) -> CorridorQP:
         if self._qp is None or self._qp.K != K:
@@ -226,4 +235,5 @@ class RCLBNMPCLaw:
         return LawResult(float(it.w[0]), v_mps=float(it.v[0]), predicted=it.X[1:],
                          solve=SolveReport(cost, result.iterations, result.evaluations, result.status, learned),
                          uncertainty=UncertaintyReport(float(it.sig[:, 1].max()), float(it.sig[:, 2].max()),
-                                                       speed_scale=speed_scale, violation=it.violation))
+                                                       speed_scale=speed_scale, violation=it.violation,
+                                                       **_horizon_sigmas(it.sig)))

@@ -32,7 +32,8 @@ class Rung:
     v: np.ndarray
     w: np.ndarray
     Sigma: np.ndarray       # (K+1, 3, 3)
-    sig: np.ndarray         # (K, 3) route-frame standard deviations of x_1..x_K
+    sig_model: np.ndarray   # (K, 3) route-frame standard deviations of x_1..x_K, as the model gives them
+    sig: np.ndarray         # (K, 3) the same widened by the online calibration (what the corridor must hold)
 
     @property
     def scale(self) -> float:
@@ -49,7 +50,7 @@ def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: H
     wk = vk * p.ref.kappa + (w - v * base.ref.kappa) * vk / v0    # same path, corrections scaled with speed
     X = p.rollout(wk, with_jac=True, v=vk, with_v_jac=True, a_out=a_out)[0]
     Sig, sig = cov.along(p, X, a_out, vk, wk)
-    return Rung(k, p, vk, wk, Sig, sig)
+    return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig))
 
 
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,

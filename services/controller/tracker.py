@@ -114,9 +114,11 @@ class PathTracker:
         return pose, pr.distance_m, pr.lateral_m, pr.heading_rad
 
     def step(self, now_s: float, loc: LocState | None, tick: int | None = None,
-             command_at: Callable[[int], tuple[float, float] | None] | None = None) -> Decision:
+             command_at: Callable[[int], tuple[float, float] | None] | None = None,
+             spread_factors: tuple[float, ...] = ()) -> Decision:
         """`tick`: the robot tick this command will be applied at; `command_at(t)`: the command applied
-        at tick t. With both, the law learns which commands were applied since the estimate's capture."""
+        at tick t. With both, the law learns which commands were applied since the estimate's capture.
+        `spread_factors`: the online calibration's factors on the predicted spread per step (calibration.py)."""
         if loc is not None and loc.has_pose:
             self._last_ok = loc
         last = self._last_ok
@@ -172,8 +174,8 @@ class PathTracker:
                           e_head_rad=law_head, v_mps=v, speed_at=self.speed_at, prev_cmd=self._last_cmd,
                           prev_pose=prev_pose, w_limit=self.limits.w_limit(v), w_limit_at=self.limits.w_limit,
                           delayed_cmds=delayed, cmd_before_capture=before, xi_capture=xi_capture, xi_now=xi_now,
-                          pose_cov=self._route_cov(last),
-                          corridor=self.corridor, v_max_mps=self.limits.v_max_mps)
+                          pose_cov=self.route_cov(last), corridor=self.corridor, v_max_mps=self.limits.v_max_mps,
+                          spread_factors=spread_factors)
         res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
@@ -212,7 +214,7 @@ class PathTracker:
             return (self._fallback.angular(ctx),
                     f"{self.law.name} failed ({type(exc).__name__}: {exc}); feedback linearization this step")
 
-    def _route_cov(self, loc: LocState) -> np.ndarray:
+    def route_cov(self, loc: LocState) -> np.ndarray:
         """The estimate's covariance turned from the vertex frame into the route's frame."""
         cov = np.asarray(loc.cov_T_vertex_robot, dtype=float).reshape(3, 3)
         th = float(self.path.poses[loc.vertex, 2])

@@ -34,6 +34,11 @@ class PriorStd:
                 *self.base, *self.per_mps, *self.per_radps) < 0:
             raise ValueError("prior std: three non-negative values each for base, per_mps and per_radps")
 
+    def std(self, U: np.ndarray) -> np.ndarray:
+        """(n, 3) std per period for commands U (n, 2): v, w."""
+        return (np.asarray(self.base) + np.outer(np.abs(U[:, 0]), self.per_mps)
+                + np.outer(np.abs(U[:, 1]), self.per_radps))
+
 
 class DisturbanceVariance:
     """Var[g(a)] per output for a batch of inputs: the GP's (latent) variance, or the prior."""
@@ -48,8 +53,7 @@ class DisturbanceVariance:
 
     def with_mean(self, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(the GP's posterior mean, zero without a GP; the variance) from one GP prediction."""
-        std = (np.asarray(self.prior.base) + np.outer(np.abs(A[:, 5]), self.prior.per_mps)
-               + np.outer(np.abs(A[:, 6]), self.prior.per_radps))
+        std = self.prior.std(A[:, 5:7])
         if self.gp is None:
             return np.zeros((len(A), 3)), std ** 2 + self.floor
         # the share of its prior sigma_f^2 the GP's posterior keeps (~0 next to repeated experiences, 1

@@ -1,0 +1,83 @@
+"""The online check of the predicted spread (services/controller/calibration.py), driven with errors of
+known distribution: a calibrated spread stays as it is, an over-confident one is widened until about
+1 % of the predictions leave their 3-sigma region, each horizon step on its own, and headings wrap."""
+import math
+
+import numpy as np
+import pytest
+
+from services.controller.calibration import Prediction, SpreadCalibration
+
+
+def prediction(step: int, cal: SpreadCalibration, sigma: float = 0.01, heading: float = 0.0) -> Prediction:
+    """A prediction at the origin (route along x), its model spread widened as the laws widen it."""
+    f = cal.spread_factors()[step - 1]
+    return Prediction(step, (0.0, 0.0, heading), (0.0, 1.0), sigma * f, sigma * f, float(cal.scales[step - 1]))
+
+
+def run(true_over_model: float, n: int, seed: int = 0) -> tuple[SpreadCalibration, list[bool]]:
+    """n one-step predictions whose real errors are `true_over_model` times the model's sigma."""
+    rng = np.random.default_rng(seed)
+    cal, outside = SpreadCalibration(horizon=1), []
+    for k in range(n):
+        cal.predict(k, [prediction(1, cal)])
+        err = 0.01 * true_over_model * rng.standard_normal(2)
+        outside.append(cal.realize(k + 1, (0.3, err[0], err[1]), 0.0, 0.0)[0] > 3.0)
+    return cal, outside
+
+
+def test_a_calibrated_spread_is_left_as_it_is():
+    cal, outside = run(1.0, 5000)
+    assert cal.scales[0] < 1.5
+    assert np.mean(outside) < 0.01          # two components: ~0.5 % expected
+
+
+def test_an_over_confident_spread_is_widened_until_its_3_sigma_holds():
+    cal, outside = run(4.0, 6000)           # the real errors are 4x what the model claims
+    assert 9.0 < cal.scales[0] < 60.0       # ~16 would be exact in the RMS sense
+    assert 0 < sum(outside[:50]) < 10       # the first exceedances widen it at once ...
+    assert np.mean(outside[-3000:]) <= 0.01   # ... and then at most 1 % leave their 3-sigma region
+
+
+def test_the_factor_never_narrows_the_models_own_spread():
+    cal, _ = run(0.2, 3000)                 # the model is too cautious: the check leaves it
+    assert cal.scales[0] == 1.0
+
+
+def test_each_horizon_step_is_widened_by_its_own_errors():
+    """A model biased by 1 cm per period (the error grows linearly over the horizon) with independent
+    noise growing with sqrt(j), which the model knows of: the late steps are widened most, the first
+    (whose spread decides whether to stop) least."""
+    rng = np.random.default_rng(1)
+    cal = SpreadCalibration(horizon=10)
+    for k in range(3000):
+        preds = []
+        for j in range(1, 11):
+            p = prediction(j, cal, sigma=0.01 * math.sqrt(j))
+            miss = 0.01 * j + 0.01 * math.sqrt(j) * rng.standard_normal()
+            preds.append(Prediction(j, (0.0, -miss, 0.0), p.normal, p.sigma_lat_m, p.sigma_head_rad, p.scale))
+        cal.predict(k, preds)
+        cal.realize(k, (0.0, 0.0, 0.0), 0.0, 0.0)      # where the robot really is: on the route
+    assert cal.scales[0] < cal.scales[4] < cal.scales[-1]
+    assert np.all(cal.outside[1:] / cal.checked[1:] < 0.03)
+
+
+def test_only_estimates_that_were_predicted_are_checked_and_headings_wrap():
+    cal = SpreadCalibration(horizon=2)
+    assert cal.realize(5, (0.0, 0.0, 0.0), 0.0, 0.0) == []
+    cal.predict(4, [Prediction(1, (1.0, 0.1, math.pi - 0.01), (0.0, 1.0), 0.01, 0.02, 1.0)])
+    z = cal.realize(5, (1.3, 0.1, -math.pi + 0.01), 0.0, 0.0)     # 0.02 rad apart across the wrap; along: free
+    assert z == [pytest.approx(1.0)] and cal.checked[0] == 1 and cal.outside[0] == 0
+    cal.predict(5, [Prediction(2, (0.0, 0.0, 0.0), (0.0, 1.0), 0.01, 0.01, 1.0)])
+    assert cal.realize(7, (0.0, 0.03, 0.0), 0.03 ** 2, 0.0) == [pytest.approx(0.03 / math.sqrt(0.01 ** 2 + 0.03 ** 2))]
+
+
+def test_a_burst_of_exceedances_from_one_disturbance_widens_the_spread_once():
+    """Ten predictions in flight (made with the same factor) all meet one unexpected push of 4 sigma:
+    the factor grows to what holds it, not ten times over."""
+    cal = SpreadCalibration(horizon=1)
+    for k in range(10):
+        cal.predict(k, [prediction(1, cal)])
+    for k in range(10):
+        cal.realize(k + 1, (0.0, 0.04, 0.0), 0.0, 0.0)
+    assert cal.outside[0] == 10 and cal.scales[0] == pytest.approx(1.1 * (4.0 / 3.0) ** 2)
