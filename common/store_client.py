@@ -392,20 +392,19 @@ class WindowCache:
         selector = f"{keys.store_window(path_id)}?vertex={center}&speed={speed:.6f}{extra}"
         if self.model:
             selector += f"&model={self.model}"
-        window = None
+        window, error = None, "no store answered"
         for rep in self.session.get(selector, timeout=self.timeout):
             if rep.ok is None:
                 self.failures += 1
-                self.last_error = rep.err.payload.to_bytes().decode("utf-8", "replace")
+                error = rep.err.payload.to_bytes().decode("utf-8", "replace")
                 continue
             try:
                 window = decode(ExperienceWindow, rep.ok.payload.to_bytes())
             except DecodeError as exc:
                 self.failures += 1
-                self.last_error = f"bad window: {exc}"
+                error = f"bad window: {exc}"
         if window is None:
-            if not self.last_error:
-                self.last_error = "no store answered"
+            self.last_error = error
             self.failures += 1
         return window
 
