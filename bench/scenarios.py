@@ -5,7 +5,8 @@ Scenario i is drawn by `bench.scenario_draw.draw(default_rng([S, i]), i)` (the d
 documented there): algorithm families in turn, lb-nmpc (fixed speed, 5 trials), lb-nmpc-scheduled
 (8 trials), rc-lb-nmpc (high requested speed, 5 trials), ilc (6 trials). Every lb-nmpc scenario also
 runs a second time with `[trials] learning = false` (same seed, same world): the learning-off
-comparison. Each run is its own `lbc experiment run SCENARIO --out RUN` child process (its own router
+comparison; every lb-nmpc-scheduled one a second time with `[scheduler] guard = false`: the thesis's
+rule (eq. 4.2-4.5) without the guard against overshooting increases. Each run is its own `lbc experiment run SCENARIO --out RUN` child process (its own router
 on a free port and its own services), `--jobs` of them at a time; a finished run prints one line on
 stderr. `--out DIR` keeps, per run, `DIR/<name>.toml` (replay: `lbc experiment run DIR/<name>.toml
 --out NEW`), `DIR/<name>/` (summary.json, report.html, run.mcap, logs), `DIR/<name>.log` (its console)
@@ -24,7 +25,7 @@ Figures per family, from each run's summary.json (trial k of a run: its k-th ent
   `other_stops`: trials that did not complete for another reason (time limit, ...);
   `failed_scenarios`: runs that exited with an error, with its last console line;
 - `scenarios`: the same per scenario; lb-nmpc adds `learning_off`, these figures for its
-  learning-off runs.
+  learning-off runs, and lb-nmpc-scheduled `guard_off`, for its runs under the plain thesis rule.
 `sim_speedup` = simulated seconds of all repeat trials (summary.json travel_time_s; teach passes and
 fits not counted) / wall seconds of the whole benchmark (`--jobs` runs at a time).
 The last stdout line is the JSON object. Ctrl-C (or SIGTERM) stops every run cleanly, services
@@ -62,6 +63,8 @@ from common.typecheck import to_dict
 
 CHILD_STOP_S = 60.0       # a run given SIGTERM stops its services and exits well within this
 SELF_STOP = "controller stopped: "   # how deploy/experiment.py words a trial the controller ended
+# the comparison runs per family, each under its own key in the family's figures (module docstring)
+TWINS = {"lb-nmpc": ("learning_off",), "lb-nmpc-scheduled": ("guard_off",)}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -69,7 +72,7 @@ class Job:
     """One experiment run of the benchmark."""
     index: int
     family: str
-    learning: bool
+    twin: str              # "" for the benchmark's own run, else which comparison (TWINS)
     name: str
     preset: str
     scenario_file: FsPath
@@ -152,29 +155,34 @@ class FamilyStats:
 
 
 # --- scenarios and runs ---------------------------------------------------------------------------
-def scenario_tables(n: int, seed: int, bounds: Bounds = BOUNDS, trials: int | None = None) -> list[tuple[int, dict]]:
-    """(index, scenario table) of every run: the N draws, each lb-nmpc one followed by its learning-off twin."""
+def _twin(table: dict, twin: str) -> dict:
+    """The comparison run of a drawn scenario: the same world and seed with one thing changed."""
+    if twin == "learning_off":
+        return {**table, "name": table["name"] + "-nolearn", "trials": {**table["trials"], "learning": False}}
+    return {**table, "name": table["name"] + "-thesisrule", "scheduler": {**table["scheduler"], "guard": False}}
+
+
+def scenario_tables(n: int, seed: int, bounds: Bounds = BOUNDS, trials: int | None = None) -> list[tuple[int, str, dict]]:
+    """(index, twin, scenario table) of every run: the N draws, each followed by its family's twins."""
     out = []
     for index in range(n):
         table = draw(np.random.default_rng([seed, index]), index, bounds)
         if trials is not None:
             table["trials"]["count"] = trials
-        out.append((index, table))
-        if family_of(index).name == "lb-nmpc":
-            off = {**table, "name": table["name"] + "-nolearn", "trials": {**table["trials"], "learning": False}}
-            out.append((index, off))
+        out.append((index, "", table))
+        out += [(index, twin, _twin(table, twin)) for twin in TWINS.get(family_of(index).name, ())]
     return out
 
 
-def write_jobs(tables: list[tuple[int, dict]], out: FsPath, seed: int) -> list[Job]:
+def write_jobs(tables: list[tuple[int, str, dict]], out: FsPath, seed: int) -> list[Job]:
     """Write each scenario file into `out`; the jobs that run them."""
     jobs = []
-    for index, table in tables:
+    for index, twin, table in tables:
         sc = parse_scenario(table, table["name"])
         path = out / f"{sc.name}.toml"
         path.write_text(f"# lbc bench scenarios --seed {seed}: scenario {index} ({family_of(index).name})\n"
                         f"# replay: lbc experiment run {path.name} --out DIR\n" + dump_toml(table))
-        jobs.append(Job(index=index, family=family_of(index).name, learning=sc.trials.learning, name=sc.name,
+        jobs.append(Job(index=index, family=family_of(index).name, twin=twin, name=sc.name,
                         preset=sc.robot.preset, scenario_file=path, run_dir=out / sc.name,
                         log_file=out / f"{sc.name}.log", planned_trials=sc.trials.count,
                         lateral_limit_m=sc.constraints.lateral_m,
@@ -311,9 +319,9 @@ def bench_result(outcomes: Sequence[RunOutcome], n: int, seed: int, wall_s: floa
     result: dict = {"n": n, "seed": seed}
     for fam in FAMILIES:
         mine = [o for o in outcomes if o.job.family == fam.name]
-        result[fam.name] = to_dict(family_stats([o for o in mine if o.job.learning]))
-        if fam.name == "lb-nmpc":
-            result[fam.name]["learning_off"] = to_dict(family_stats([o for o in mine if not o.job.learning]))
+        result[fam.name] = to_dict(family_stats([o for o in mine if not o.job.twin]))
+        for twin in TWINS.get(fam.name, ()):
+            result[fam.name][twin] = to_dict(family_stats([o for o in mine if o.job.twin == twin]))
     sim_s = sum(t.travel_time_s for o in outcomes for t in o.trials)
     result["sim_speedup"] = round(sim_s / wall_s, 3) if wall_s > 0 else None
     result.update({"sim_s": round(sim_s, 1), "wall_s": round(wall_s, 1), "runs": len(outcomes)})

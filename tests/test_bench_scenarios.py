@@ -1,7 +1,6 @@
 """`lbc bench scenarios`: the scenario distribution, the figures from summaries, a run end to end."""
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -36,8 +35,14 @@ def test_draw_is_deterministic_for_a_seed_and_independent_of_n():
     assert a != draw(np.random.default_rng([6, 3]), 3)
     few, more = scenarios.scenario_tables(3, 5), scenarios.scenario_tables(6, 5)
     assert more[:len(few)] == few
-    assert few[1][1] == {**few[0][1], "name": few[0][1]["name"] + "-nolearn",
-                         "trials": {**few[0][1]["trials"], "learning": False}}
+    (i0, _, lb), (i1, twin1, off) = few[0], few[1]
+    assert (i0, i1, twin1) == (0, 0, "learning_off")
+    assert off == {**lb, "name": lb["name"] + "-nolearn", "trials": {**lb["trials"], "learning": False}}
+    (i2, _, sched), (i3, twin3, rule) = few[2], few[3]       # scenario 1: lb-nmpc-scheduled
+    assert (i2, i3, twin3) == (1, 1, "guard_off")
+    assert rule == {**sched, "name": sched["name"] + "-thesisrule", "scheduler": {**sched["scheduler"], "guard": False}}
+    assert parse_scenario(rule).scheduler.guard is False and parse_scenario(sched).scheduler.guard is True
+    assert [t[1] for t in few[4:]] == [""]                    # scenario 2: rc-lb-nmpc, no twin
 
 
 def test_families_and_presets_take_turns():
@@ -135,8 +140,8 @@ def test_the_draws_cover_loops_terrain_alone_and_combined():
 
 
 # --- the figures, on hand-made summaries ------------------------------------------------------------
-def _job(tmp: Path, name: str, family: str = "lb-nmpc", learning: bool = True, planned: int = 3) -> scenarios.Job:
-    return scenarios.Job(index=0, family=family, learning=learning, name=name, preset="husky",
+def _job(tmp: Path, name: str, family: str = "lb-nmpc", twin: str = "", planned: int = 3) -> scenarios.Job:
+    return scenarios.Job(index=0, family=family, twin=twin, name=name, preset="husky",
                          scenario_file=tmp / f"{name}.toml", run_dir=tmp / name, log_file=tmp / f"{name}.log",
                          planned_trials=planned, lateral_limit_m=0.2, heading_limit_rad=math.radians(10.0))
 
@@ -168,9 +173,11 @@ def _hand_made(tmp: Path) -> list[scenarios.RunOutcome]:
         # a run that failed after one trial that hit the time limit
         _outcome(tmp, _job(tmp, "f"), [(0.1, 2, 99, 0, "time limit reached")], returncode=1,
                  log="trial 1/3 NOT COMPLETED\nlbc experiment: bridge exited with code 1\n"),
-        _outcome(tmp, _job(tmp, "a-off", learning=False), [(0.2, 5, 50, 0, ok), (0.19, 5, 50, 0, ok),
+        _outcome(tmp, _job(tmp, "a-off", twin="learning_off"), [(0.2, 5, 50, 0, ok), (0.19, 5, 50, 0, ok),
                                                            (0.18, 5, 50, 0, ok)]),
         _outcome(tmp, _job(tmp, "s", family="lb-nmpc-scheduled", planned=2), [(0.1, 3, 60, 0, ok), (0.1, 3, 30, 0, ok)]),
+        _outcome(tmp, _job(tmp, "s-rule", family="lb-nmpc-scheduled", twin="guard_off", planned=2),
+                 [(0.1, 3, 60, 0, ok), (0.3, 12, 28, 4, ok)]),
     ]
 
 
@@ -195,10 +202,14 @@ def test_figures_from_hand_made_summaries(tmp_path):
     sched = result["lb-nmpc-scheduled"]
     assert sched["travel_time_gain_median"] == pytest.approx(0.5) and sched["learning_gain_median"] == 0.0
     assert sched["worst_excursion_ratio"] == pytest.approx(0.5)   # heading 3 of 10 deg, lateral 0.1 of 0.2 m
+    rule = sched["guard_off"]
+    assert rule["violation_trials"] == 1 and rule["worst_excursion_ratio"] == pytest.approx(1.5)
+    assert rule["travel_time_gain_median"] == pytest.approx(0.5333, abs=1e-4) and rule["trials"] == 2
     for fam in ("rc-lb-nmpc", "ilc"):
         assert result[fam]["trials"] == 0 and result[fam]["completion_rate"] is None
         assert result[fam]["learning_gain_median"] is None and result[fam]["self_stops"] == []
-    travel = (50 + 45 + 40) + (100 + 90 + 70) + 3 * 20 + (80 + 60 + 40) + (30 + 30 + 12) + 99 + 3 * 50 + (60 + 30)
+    travel = (50 + 45 + 40) + (100 + 90 + 70) + 3 * 20 + (80 + 60 + 40) + (30 + 30 + 12) + 99 + 3 * 50 + (60 + 30) \
+        + (60 + 28)
     assert result["sim_speedup"] == pytest.approx(travel / 100.0, abs=1e-3)
 
 
@@ -217,10 +228,12 @@ def test_bench_scenarios_runs_end_to_end(tmp_path, capsys):
         assert stats["trials_planned"] == 2 * runs and len(stats["scenarios"]) == runs
         assert stats["failed_scenarios"] == []
     assert result["lb-nmpc"]["learning_off"]["trials"] == 2
+    assert result["lb-nmpc-scheduled"]["guard_off"]["trials"] == 2
     assert result["sim_speedup"] > 0
     # every run can be replayed: its scenario file loads and its summary is there
     names = [s["scenario"] for fam in ("lb-nmpc", "lb-nmpc-scheduled") for s in result[fam]["scenarios"]]
     names += [s["scenario"] for s in result["lb-nmpc"]["learning_off"]["scenarios"]]
+    names += [s["scenario"] for s in result["lb-nmpc-scheduled"]["guard_off"]["scenarios"]]
     for name in names:
         assert load_scenario(out / f"{name}.toml").name == name
         assert len(json.loads((out / name / "summary.json").read_text())["trials"]) == 2

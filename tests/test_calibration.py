@@ -6,13 +6,13 @@ import math
 import numpy as np
 import pytest
 
-from services.controller.calibration import Prediction, SpreadCalibration
+from services.controller.calibration import MARGIN, WINDOW, Prediction, SpreadCalibration
 
 
 def prediction(step: int, cal: SpreadCalibration, sigma: float = 0.01, heading: float = 0.0) -> Prediction:
     """A prediction at the origin (route along x), its model spread widened as the laws widen it."""
     f = cal.spread_factors()[step - 1]
-    return Prediction(step, (0.0, 0.0, heading), (0.0, 1.0), sigma * f, sigma * f, float(cal.scales[step - 1]))
+    return Prediction(step, 0.0, heading, sigma * f, sigma * f, float(cal.scales[step - 1]))
 
 
 def run(true_over_model: float, n: int, seed: int = 0) -> tuple[SpreadCalibration, list[bool]]:
@@ -22,7 +22,7 @@ def run(true_over_model: float, n: int, seed: int = 0) -> tuple[SpreadCalibratio
     for k in range(n):
         cal.predict(k, [prediction(1, cal)])
         err = 0.01 * true_over_model * rng.standard_normal(2)
-        outside.append(cal.realize(k + 1, (0.3, err[0], err[1]), 0.0, 0.0)[0] > 3.0)
+        outside.append(cal.realize(k + 1, err[0], err[1], 0.0, 0.0)[0] > 3.0)
     return cal, outside
 
 
@@ -55,21 +55,21 @@ def test_each_horizon_step_is_widened_by_its_own_errors():
         for j in range(1, 11):
             p = prediction(j, cal, sigma=0.01 * math.sqrt(j))
             miss = 0.01 * j + 0.01 * math.sqrt(j) * rng.standard_normal()
-            preds.append(Prediction(j, (0.0, -miss, 0.0), p.normal, p.sigma_lat_m, p.sigma_head_rad, p.scale))
+            preds.append(Prediction(j, -miss, 0.0, p.sigma_lat_m, p.sigma_head_rad, p.scale))
         cal.predict(k, preds)
-        cal.realize(k, (0.0, 0.0, 0.0), 0.0, 0.0)      # where the robot really is: on the route
+        cal.realize(k, 0.0, 0.0, 0.0, 0.0)      # where the robot really is: on the route
     assert cal.scales[0] < cal.scales[4] < cal.scales[-1]
     assert np.all(cal.outside[1:] / cal.checked[1:] < 0.03)
 
 
 def test_only_estimates_that_were_predicted_are_checked_and_headings_wrap():
     cal = SpreadCalibration(horizon=2)
-    assert cal.realize(5, (0.0, 0.0, 0.0), 0.0, 0.0) == []
-    cal.predict(4, [Prediction(1, (1.0, 0.1, math.pi - 0.01), (0.0, 1.0), 0.01, 0.02, 1.0)])
-    z = cal.realize(5, (1.3, 0.1, -math.pi + 0.01), 0.0, 0.0)     # 0.02 rad apart across the wrap; along: free
+    assert cal.realize(5, 0.0, 0.0, 0.0, 0.0) == []
+    cal.predict(4, [Prediction(1, 0.1, math.pi - 0.01, 0.01, 0.02, 1.0)])
+    z = cal.realize(5, 0.1, -math.pi + 0.01, 0.0, 0.0)     # 0.02 rad apart across the wrap
     assert z == [pytest.approx(1.0)] and cal.checked[0] == 1 and cal.outside[0] == 0
-    cal.predict(5, [Prediction(2, (0.0, 0.0, 0.0), (0.0, 1.0), 0.01, 0.01, 1.0)])
-    assert cal.realize(7, (0.0, 0.03, 0.0), 0.03 ** 2, 0.0) == [pytest.approx(0.03 / math.sqrt(0.01 ** 2 + 0.03 ** 2))]
+    cal.predict(5, [Prediction(2, 0.0, 0.0, 0.01, 0.01, 1.0)])
+    assert cal.realize(7, 0.03, 0.0, 0.03 ** 2, 0.0) == [pytest.approx(0.03 / math.sqrt(0.01 ** 2 + 0.03 ** 2))]
 
 
 def test_a_burst_of_exceedances_from_one_disturbance_widens_the_spread_once():
@@ -79,5 +79,36 @@ def test_a_burst_of_exceedances_from_one_disturbance_widens_the_spread_once():
     for k in range(10):
         cal.predict(k, [prediction(1, cal)])
     for k in range(10):
-        cal.realize(k + 1, (0.0, 0.04, 0.0), 0.0, 0.0)
+        cal.realize(k + 1, 0.04, 0.0, 0.0, 0.0)
     assert cal.outside[0] == 10 and cal.scales[0] == pytest.approx(1.1 * (4.0 / 3.0) ** 2)
+
+
+def test_a_widening_is_forgotten_a_window_after_the_errors_that_asked_for_it():
+    """A 4-sigma surprise (a corner the model did not know) widens the spread at once; WINDOW calibrated
+    predictions later the spread is the model's own again, not slowed for the rest of the trial."""
+    cal = SpreadCalibration(horizon=1)
+    cal.predict(0, [prediction(1, cal)])
+    cal.realize(1, 0.04, 0.0, 0.0, 0.0)
+    assert cal.scales[0] == pytest.approx(MARGIN * (4.0 / 3.0) ** 2)
+    for k in range(1, WINDOW):
+        cal.predict(k, [prediction(1, cal)])
+        cal.realize(k + 1, 0.0, 0.0, 0.0, 0.0)
+    assert cal.scales[0] > 1.5                 # the surprise is still among the last WINDOW predictions
+    cal.predict(WINDOW, [prediction(1, cal)])
+    cal.realize(WINDOW + 1, 0.0, 0.0, 0.0, 0.0)
+    assert cal.scales[0] == 1.0
+
+
+def test_the_teach_factors_hold_until_a_window_is_seen_and_a_later_trial_continues_the_window():
+    cal = SpreadCalibration(horizon=2, scales=np.array([4.0, 9.0]))
+    assert cal.spread_factors() == pytest.approx((2.0, 3.0))
+    for k in range(WINDOW):
+        cal.predict(k, [prediction(1, cal)])
+        assert cal.scales[0] == 4.0            # calibrated errors: the teach floor stays while the window fills
+        cal.realize(k + 1, 0.0, 0.0, 0.0, 0.0)
+    assert cal.scales[0] == 1.0 and cal.scales[1] == 9.0   # step 2 was never checked
+    cal.predict(WINDOW, [prediction(1, cal)])
+    cal.realize(WINDOW + 1, 0.05, 0.0, 0.0, 0.0)   # 5 sigma of the model's own spread
+    nxt = cal.continued()
+    assert nxt.scales[0] == pytest.approx(MARGIN * 25.0 / 9.0) and nxt.checked[0] == 0
+    assert len(nxt.recent[0]) == WINDOW

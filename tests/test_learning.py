@@ -64,7 +64,7 @@ LBNMPC = {"name": "lbnmpc1", "seed": 11, "robot": {"preset": "husky"},
 def test_lb_nmpc_experiment_1_cuts_max_lateral_error_by_60_percent_and_keeps_it(tmp_path, scenario_file):
     trials = run(tmp_path, scenario_file, LBNMPC)
     lat = [t["max_lateral_m"] for t in trials]
-    assert all(t["completed"] for t in trials) and lat[0] > 0.08
+    assert all(t["completed"] for t in trials) and lat[0] > 0.08, [(t["end_reason"], t["max_lateral_m"]) for t in trials]
     # the max of one trial has a floor of ~3 sigma of the localization noise (0.01 m): judge trials 3-5
     # by their mean, and every one of them against a relapse (a solver stuck on its warm start once
     # let the heading run to 20 deg in trial 4 or 6 of some seeds)

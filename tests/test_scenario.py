@@ -6,7 +6,6 @@ import pytest
 from common.config import ConfigError, dump_toml, load_config
 from common.bins import BinPolicy
 from common.scenario import load_scenario, parse_scenario
-from services.controller.settings import NMPCSettings
 from services.controller.uncertainty import PriorStd
 from deploy.configs import service_configs
 from deploy.experiment import check_supported

@@ -1,11 +1,16 @@
 """The predicted spread checked online against what happens, and widened where it is too narrow.
 
 The uncertainty-aware laws (MM-, C-, RC-LB-NMPC) predict, at tick k, the robot's poses x_1..x_K with
-their lateral and heading standard deviations along the route. When the estimate of tick k + j arrives,
-the realized error of the prediction made for it, across the route and in heading, is normalized by
-the spread the law expected plus the estimate's own:
+their lateral and heading standard deviations along the route. The corridor bounds the errors against
+the route, so those are what is checked: when the estimate of tick k + j arrives, its lateral and
+heading errors against the route (each at its own place) are compared with those the prediction made
+for it had at its place, normalized by the spread the law expected plus the estimate's own:
 
-    z_j = (x_estimate - x_predicted)_lateral, heading / sqrt(sigma_pred,j^2 + sigma_estimate^2)
+    z_j = (e_estimate - e_predicted)_lateral, heading / sqrt(sigma_pred,j^2 + sigma_estimate^2)
+
+(Poses are not compared directly: a later solve that drives slower than the plan leaves the robot
+behind the predicted pose along the route, which in a corner is a pose difference across it and in
+heading that no corridor cares about.)
 
 A calibrated 3-sigma region holds all but ~0.3 % of them. The learned model can be over-confident (the
 GP's posterior variance measures how well it knows its own data, not how well the world repeats), and
@@ -13,42 +18,59 @@ the a-priori one is a guess, so each horizon step j has a factor kappa_j >= 1 on
 variance. Per step, because the errors of a wrong model are correlated in time: a bias grows linearly
 over the horizon where independent disturbances grow with its square root, and one factor on the
 per-period disturbance would widen the first steps (whose spread decides a stop) for the errors of
-the last. A |z_j| > 3 raises kappa_j at once to what would have held it, 1.1 (z_j / 3)^2 times the
-factor that prediction was made with (not compounded: the predictions in flight when a disturbance
-appears all see it, and were all made before the first of them widened the spread); every contained
-prediction lowers it by `DECAY`, down to 1. In equilibrium p ln(jump) = -(1 - p) ln(decay): with
-decay = 0.999 and jumps >= 1.1 about 1 % of the predictions may leave their 3-sigma region.
+the last. Each realized prediction says which factor would just have held it,
+
+    need = max(1, (err^2 / 9 - sigma_estimate^2) / sigma_model^2)   (lateral and heading, the larger)
+
+with sigma_model the spread before widening; kappa_j is MARGIN times the largest need (where above
+1) of the last WINDOW predictions of step j (conformal prediction's recent-maximum rule): a new
+exceedance widens at once, and the widening is forgotten WINDOW ticks after the errors that asked
+for it, so a corner's surprise does not slow the straight that follows for the rest of the trial.
+With exchangeable errors about 1 / (WINDOW + 1) of the predictions leave their widened 3-sigma
+region. A new route starts from the teach pass's factors (identification.horizon_factors), kept as a
+floor until a step has seen WINDOW predictions; a later trial starts from the last one's window.
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
-DECAY = 0.999            # per contained prediction
-MAX_JUMP = 4.0           # the most a factor grows on one exceedance
+WINDOW = 150             # predictions per horizon step remembered (15 s at 10 Hz)
+MARGIN = 1.1             # on the largest need: the next error is rarely exactly the worst seen
 MAX_SCALE = 400.0        # 20x the modelled standard deviation
 
 
 @dataclass(frozen=True)
 class Prediction:
-    """One predicted pose (route frame) with its spread across the route and in heading."""
+    """One predicted pose's errors against the route (at its own place) with their spread."""
     step: int                 # j, 1..K: how many periods ahead it was predicted
-    pose: tuple[float, float, float]
-    normal: tuple[float, float]   # unit vector across the route there
+    lateral_m: float
+    heading_rad: float
     sigma_lat_m: float
     sigma_head_rad: float
     scale: float              # the factor of step j the spread was predicted with
 
 
 class SpreadCalibration:
-    def __init__(self, horizon: int, scales: np.ndarray | None = None):
-        self.scales = np.ones(horizon) if scales is None else np.maximum(np.asarray(scales, dtype=float), 1.0)
+    def __init__(self, horizon: int, scales: np.ndarray | None = None,
+                 recent: list[deque] | None = None):
+        start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
+        self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
+        self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
+            [deque(maxlen=WINDOW) for _ in range(horizon)]
+        self.scales = np.array([self._scale(j) for j in range(horizon)])
         self.checked = np.zeros(horizon, dtype=int)
         self.outside = np.zeros(horizon, dtype=int)
         self._pending: dict[int, list[Prediction]] = {}
+
+    def continued(self) -> "SpreadCalibration":
+        """A calibration for the next trial on the same route and model: this one's recent needs, no
+        predictions pending, counts from zero."""
+        return SpreadCalibration(len(self.recent), self.scales, self.recent)
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:
         """The law's predictions of step k made at `tick`: prediction j is for the estimate of tick + j."""
@@ -57,31 +79,42 @@ class SpreadCalibration:
         for old in [t for t in self._pending if t < tick - 200]:
             del self._pending[old]
 
-    def realize(self, tick: int, pose, var_lat_m2: float, var_head_rad2: float) -> list[float]:
-        """The estimate captured at `tick` (route frame) and its variances across the route and in
+    def realize(self, tick: int, lateral_m: float, heading_rad: float, var_lat_m2: float,
+                var_head_rad2: float) -> list[float]:
+        """The route errors of the estimate captured at `tick` and its variances across the route and in
         heading: |z| of every prediction made for it."""
         out = []
         for p in self._pending.pop(tick, []):
-            d = (pose[0] - p.pose[0]) * p.normal[0] + (pose[1] - p.pose[1]) * p.normal[1]
+            d = lateral_m - p.lateral_m
+            h = math.remainder(heading_rad - p.heading_rad, 2 * math.pi)
             z_lat = d / math.sqrt(p.sigma_lat_m ** 2 + var_lat_m2 + 1e-12)
-            z_head = math.remainder(pose[2] - p.pose[2], 2 * math.pi) / math.sqrt(p.sigma_head_rad ** 2
-                                                                                    + var_head_rad2 + 1e-12)
-            out.append(self._update(p, max(abs(z_lat), abs(z_head))))
+            z_head = h / math.sqrt(p.sigma_head_rad ** 2 + var_head_rad2 + 1e-12)
+            scale = max(p.scale, 1e-9)
+            need = max(_need(d, var_lat_m2, p.sigma_lat_m ** 2 / scale), _need(h, var_head_rad2, p.sigma_head_rad ** 2 / scale))
+            out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
         return out
 
-    def _update(self, p: Prediction, z: float) -> float:
-        j = p.step - 1
+    def _update(self, j: int, z: float, need: float) -> float:
         if j >= len(self.scales):
             return z
         self.checked[j] += 1
-        if z > 3.0:
-            self.outside[j] += 1
-            needed = p.scale * min(MAX_JUMP, 1.1 * (z / 3.0) ** 2)
-            self.scales[j] = min(MAX_SCALE, max(self.scales[j], needed))
-        else:
-            self.scales[j] = max(1.0, self.scales[j] * DECAY)
+        self.outside[j] += z > 3.0
+        self.recent[j].append(need)
+        self.scales[j] = self._scale(j)
         return z
+
+    def _scale(self, j: int) -> float:
+        window = self.recent[j]
+        worst = max(window) if window else 1.0
+        seen = MARGIN * worst if worst > 1.0 else 1.0
+        floor = self.floor[j] if len(window) < WINDOW else 1.0
+        return float(min(MAX_SCALE, max(1.0, floor, seen)))
 
     def spread_factors(self) -> tuple[float, ...]:
         """sqrt(kappa_j): what each step's predicted standard deviations are multiplied by."""
         return tuple(float(x) for x in np.sqrt(self.scales))
+
+
+def _need(err: float, var_estimate: float, var_model: float) -> float:
+    """The factor on the model's variance that puts `err` on the 3-sigma boundary (at least 1)."""
+    return max(1.0, (err * err / 9.0 - var_estimate) / max(var_model, 1e-18))

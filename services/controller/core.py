@@ -37,27 +37,23 @@ class ControllerCore:
 
     def _realize(self, loc: LocState) -> None:
         """Check the predictions made for this estimate's capture tick against it."""
-        pose, dist, _, _ = self.tracker.route_errors(loc)
+        pose, dist, lateral, heading = self.tracker.route_errors(loc)
         cov = self.tracker.route_cov(loc)
         th = float(self.path.tangent_at(dist))
         n = np.array([-math.sin(th), math.cos(th)])
-        self.calibration.realize(loc.capture_tick, pose, float(n @ cov[:2, :2] @ n), float(cov[2, 2]))
+        self.calibration.realize(loc.capture_tick, lateral, heading, float(n @ cov[:2, :2] @ n), float(cov[2, 2]))
 
     def keep_prediction(self, tick: int, d: Decision) -> None:
         """After the command is out: the law's predicted poses x_1..x_K (of ticks tick + 1..K) with their
-        spread, for the online check. Their places along the route come from the distance driven along
-        the prediction (only the route's direction there is needed)."""
+        spread, for the online check, as errors against the route each at its own place."""
         law = d.law
         unc = law.uncertainty if law is not None else None
         if unc is None or not unc.horizon_sigma_lat_m or law.predicted is None or d.state != "tracking":
             return
-        X = np.asarray(law.predicted)
-        steps = np.hypot(*np.diff(X[:, :2], axis=0, prepend=X[:1, :2]).T)
-        s = d.distance_m + d.v_mps * self.period_s + np.cumsum(steps)
-        th = np.asarray(self.path.tangent_at(s))
-        scales = self.calibration.scales
-        self.calibration.predict(tick, [
-            Prediction(j + 1, (float(X[j, 0]), float(X[j, 1]), float(X[j, 2])),
-                       (-math.sin(th[j]), math.cos(th[j])), unc.horizon_sigma_lat_m[j], unc.horizon_sigma_head_rad[j],
-                       float(scales[j]) if j < len(scales) else 1.0)
-            for j in range(len(X))])
+        scales, hint, predictions = self.calibration.scales, d.vertex, []
+        for j, x in enumerate(np.asarray(law.predicted)):
+            pr = self.path.project(x, hint=hint)
+            hint = pr.vertex
+            predictions.append(Prediction(j + 1, pr.lateral_m, pr.heading_rad, unc.horizon_sigma_lat_m[j],
+                                          unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0))
+        self.calibration.predict(tick, predictions)

@@ -69,7 +69,7 @@ class ControllerService(Service):
         self.gains = cfg.fl
         # the nominal model per route, identified on its teach pass (nominal_models.py)
         self.nominal = NominalModels(r, cfg.period_s, FsPath(cfg.data_dir) / "models" if cfg.data_dir else None)
-        self.spread_scale: dict[tuple[str, str], np.ndarray] = {}   # (route, model) -> calibration.py's factors
+        self.calibrations: dict[tuple[str, str], SpreadCalibration] = {}   # (route, model) -> the last trial's
         node.subscribe_queue(keys.bridge_status(r), BridgeStatus, self.inbox)
         node.subscribe_queue(keys.odom(r), Odometry, self.inbox)
         node.queryable(keys.ctrl_model(r, "*"), lambda q: self.inbox.put(("q_model", q)))
@@ -130,9 +130,8 @@ class ControllerService(Service):
                                   period_s=self.cfg.period_s)
         except (OSError, ValueError) as exc:
             return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
-        # the calibration's scale carries over from earlier trials on this route under this model
-        self.core = ControllerCore(path, tracker, self.cfg.period_s, SpreadCalibration(
-            settings.horizon, self._spread_scales(req.path_id, tracker.lag.model_tag)))
+        self.core = ControllerCore(path, tracker, self.cfg.period_s,
+                                   self._calibration(req.path_id, tracker.lag.model_tag, settings.horizon))
         self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
         self._use_model(tracker.lag.model_tag)
         if self.cache is not None:
@@ -143,15 +142,17 @@ class ControllerService(Service):
         return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
                           f"with {self.cfg.algorithm}, nominal model {tracker.lag.model_tag}")
 
-    def _spread_scales(self, path_id: str, model_tag: str) -> np.ndarray | None:
+    def _calibration(self, path_id: str, model_tag: str, horizon: int) -> SpreadCalibration:
         """Where the online check of the predicted spread starts: where the last trial on this route under
-        this model left it, else the teach pass's factors (identification.py), else nothing widened."""
-        if (path_id, model_tag) in self.spread_scale:
-            return self.spread_scale[(path_id, model_tag)]
+        this model left it, else the teach pass's factors (identification.py), else nothing widened. The
+        teach factors measure the teach residuals against the identified prior: a hand-set prior starts
+        unwidened."""
+        if (path_id, model_tag) in self.calibrations:
+            return self.calibrations[(path_id, model_tag)].continued()
         model = self.nominal.of(path_id)
-        if model is None or model.model_tag != model_tag:
-            return None
-        return np.square(model.spread_factors[:self.cfg.nmpc.horizon])
+        if model is None or model.model_tag != model_tag or not self.cfg.nmpc.prior_is_identified:
+            return SpreadCalibration(horizon)
+        return SpreadCalibration(horizon, np.square(model.spread_factors[:horizon]))
 
     def _use_model(self, tag: str) -> None:
         """The trial's nominal model names its experiences and selects the windows and fits learned from."""
@@ -163,7 +164,7 @@ class ControllerService(Service):
 
     def _stop_repeat(self, ctl: Control) -> None:
         if self.core is not None:
-            self.spread_scale[(self.path_id, self.model_tag)] = self.core.calibration.scales.copy()
+            self.calibrations[(self.path_id, self.model_tag)] = self.core.calibration
         self.core = None
         notes = [self._learn_ilc()] if self.ilc is not None else []
         self.ilc = None

@@ -9,7 +9,8 @@ from services.controller.uncertainty import PriorStd
 
 _PRIOR = PriorStd()
 # the settings a teach pass identifies unless they are set by hand (NominalModel has the same names)
-IDENTIFIED = ("actuator_tau_s", "prior_std_base", "prior_std_per_mps", "prior_std_per_radps")
+PRIOR = ("prior_std_base", "prior_std_per_mps", "prior_std_per_radps")
+IDENTIFIED = ("actuator_tau_s",) + PRIOR
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -78,6 +79,11 @@ class NMPCSettings:
     def lag(self, dt: float) -> ActuatorLag:
         tau = self.actuator_tau_s or (0.0, 0.0)
         return ActuatorLag(tau[0], tau[1], dt)
+
+    @property
+    def prior_is_identified(self) -> bool:
+        """No part of the a-priori uncertainty was set by hand."""
+        return all(getattr(self, name) is None for name in PRIOR)
 
     def prior_std(self) -> PriorStd:
         return PriorStd(base=self.prior_std_base or _PRIOR.base, per_mps=self.prior_std_per_mps or _PRIOR.per_mps,
