@@ -478,7 +478,8 @@ def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, h
     m = trial_metrics(exp.truth_path, rec, series, *limits, experiences_total=ingested)
     m["outside_3sigma_fraction"] = outside_3sigma_fraction(exp.path, exp.truth_path, rec)
     # the online calibration's factor on the 1 s prediction's spread when the trial ended (calibration.py)
-    m["spread_factor_1s"] = rec.status[-1].spread_factors[-1] if rec.status and rec.status[-1].spread_factors else None
+    stepped = rec.stepped_status()
+    m["spread_factor_1s"] = stepped[-1].spread_factors[-1] if stepped and stepped[-1].spread_factors else None
     nominal, learned = d.rmse()
     if rec.trial in exp.schedules:
         v = np.asarray(exp.schedules[rec.trial].v_mps)

@@ -26,6 +26,14 @@ class TrialRecord:
     end_reason: str = ""
     wall_s: float = 0.0
 
+    def stepped_status(self) -> list[ControllerStatus]:
+        """The statuses of ticks the bridge stepped: the controller's answer to the last tick may arrive
+        before or after the trial's end event, which the runner's wall clock decides."""
+        if not self.truth:
+            return self.status
+        last = self.truth[-1].tick
+        return [s for s in self.status if s.tick <= last]
+
 
 @dataclass
 class TrialSeries:
@@ -56,7 +64,7 @@ def truth_series(path: Path, rec: TrialRecord) -> TrialSeries:
         hint = pr.vertex
         rows.append((t.stamp_s, t.x_world_m, t.y_world_m, pr.distance_m, pr.lateral_m, pr.heading_rad, t.v_mps))
     arr = np.array(rows, dtype=float).reshape(-1, 7)
-    tracking = [s for s in rec.status if s.state in ("tracking", "holding", "stopping", "stopped", "finished")]
+    tracking = [s for s in rec.stepped_status() if s.state in ("tracking", "holding", "stopping", "stopped", "finished")]
     st = np.array([(s.distance_m, s.v_cmd_mps, s.w_cmd_radps, s.solve_ms) for s in tracking], dtype=float).reshape(-1, 4)
     loc = [(l.distance_m, np.nan if l.matched_features is None else l.matched_features, l.status == "ok")
            for l in rec.loc if l.status not in ("idle", "teach", "initializing")]
@@ -81,10 +89,10 @@ def _pct(a: np.ndarray, q: float) -> float:
 def _window(rec: TrialRecord, series: TrialSeries) -> tuple[float, float, float | None]:
     """(start, end, first stop) of the repeat proper: from the start until the controller declared the end
     of the route (or the trial ended); a safety stop's time, if the controller stopped before that."""
-    finish = next((s.stamp_s for s in rec.status if s.state == "finished"), None)
+    finish = next((s.stamp_s for s in rec.stepped_status() if s.state == "finished"), None)
     t0 = series.stamp_s[0] if series.stamp_s.size else 0.0
     t_end = finish if finish is not None else (series.stamp_s[-1] if series.stamp_s.size else t0)
-    stop = next((s.stamp_s for s in rec.status if s.state in ("stopping", "stopped")), None)
+    stop = next((s.stamp_s for s in rec.stepped_status() if s.state in ("stopping", "stopped")), None)
     return t0, t_end, stop
 
 
@@ -109,7 +117,7 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
     travel = max(0.0, float(t_end - t0))
     covered = float(np.clip(series.distance_m[active].max(initial=0.0), 0.0, path.length_m))
     features = [l.matched_features for l in rec.loc if l.has_pose and l.matched_features is not None]
-    est = [s for s in rec.status if s.state in ("tracking", "holding", "stopping", "stopped") and s.stamp_s <= t_end + 1e-9]
+    est = [s for s in rec.stepped_status() if s.state in ("tracking", "holding", "stopping", "stopped") and s.stamp_s <= t_end + 1e-9]
     steered = [s for s in est if s.state in ("tracking", "holding")]
     est_lat = np.array([s.lateral_m for s in est])
     est_head = np.array([s.heading_rad for s in est])
@@ -139,7 +147,7 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
         "rms_heading_rad_est": _rms(est_head),
         "max_w_cmd_radps": _max_abs(w_cmd),
         **_after_stop(series, t_end, t_stop, lateral_limit_m, heading_limit_rad),
-        "control_steps": len(rec.status),
+        "control_steps": len(rec.stepped_status()),
         "end_reason": rec.end_reason,
         "wall_time_s": rec.wall_s,
     }
@@ -151,7 +159,7 @@ def outside_3sigma_fraction(route: Path, truth_path: Path, rec: TrialRecord) -> 
     The prediction of the status of tick k is x_K of tick k + K in the controller's route frame."""
     truth = {t.tick: t for t in rec.truth}
     checked = outside = 0
-    for s in rec.status:
+    for s in rec.stepped_status():
         if s.state != "tracking" or not s.pred_sigma_lat_m or not s.pred_x_m:
             continue
         t = truth.get(s.tick + len(s.pred_x_m))
