@@ -258,6 +258,11 @@ class BridgeStatus(Message):
 TrialEventKind = Literal["started", "ended"]
 
 
+# the bridge's reason for ending a lockstep repeat once the controller reported the route finished and
+# the robot came to rest: a completed trial, whichever of that status and this event reaches a listener first
+ENDED_AT_ROUTE_END = "end of route, at rest"
+
+
 @dataclass(frozen=True, kw_only=True)
 class TrialEvent(Message):
     stamp_s: float

@@ -23,9 +23,9 @@ from common import keys
 from common.bus import open_session, query, query_one
 from common.codec import Decoder, decode, encode
 from common.config import ConfigError
-from common.messages import (ControllerStatus, ControlReply, ControlRequest, Experience, ExperienceBatch, HyperMsg,
-                             LocState, NominalModel, RouteMsg, ScheduleUpdate, SpeedSchedule, StoreStats, TrialEvent,
-                             TruthPose)
+from common.messages import (ENDED_AT_ROUTE_END, ControllerStatus, ControlReply, ControlRequest, Experience,
+                             ExperienceBatch, HyperMsg, LocState, NominalModel, RouteMsg, ScheduleUpdate,
+                             SpeedSchedule, StoreStats, TrialEvent, TruthPose)
 from common.path import Path, RouteRecorder
 from common.typecheck import to_dict
 from common.scenario import Scenario, load_scenario
@@ -363,11 +363,32 @@ class Experiment:
             elif kind == "loc":
                 rec.loc.append(msg)
             elif kind == "event" and msg.event == "ended" and msg.mode == "repeat":
+                finished = finished or msg.reason == ENDED_AT_ROUTE_END
                 rec.completed = finished
                 rec.end_reason = "end of route" if finished else (halt_reason or msg.reason)
                 break
+        self._late_statuses(rec)
         rec.wall_s = time.monotonic() - t_wall
         return rec
+
+    def _late_statuses(self, rec: TrialRecord) -> None:
+        """The controller's answers to the last stepped ticks may reach the runner after the bridge's end
+        event (another publisher): wait, at most 1 s, for the one before the last stepped tick, so the
+        statuses a summary counts (TrialRecord.stepped_status) do not depend on the wall clock."""
+        if not rec.truth:
+            return
+        last, deadline, others = rec.truth[-1].tick, time.monotonic() + 1.0, []
+        while not any(s.tick >= last - 1 for s in rec.status[-3:]) and time.monotonic() < deadline:
+            try:
+                kind, msg = self.events.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if kind == "status" and msg.trial == rec.trial:
+                rec.status.append(msg)
+            else:
+                others.append((kind, msg))
+        for event in others:            # for whoever reads next (fits, liveliness)
+            self.events.put(event)
 
     def learn(self, trial: int) -> tuple[HyperMsg | None, int]:
         """Between trials: make sure the trial's experiences are stored, then fit the GP

@@ -27,12 +27,13 @@ class TrialRecord:
     wall_s: float = 0.0
 
     def stepped_status(self) -> list[ControllerStatus]:
-        """The statuses of ticks the bridge stepped: the controller's answer to the last tick may arrive
-        before or after the trial's end event, which the runner's wall clock decides."""
+        """The statuses of the ticks the bridge stepped in this trial, its last one aside: statuses from
+        before the first tick (the controller's wall-clock heartbeat while it waits) and whether the
+        answer to the last tick reaches the runner before the trial ends are the wall clock's choice."""
         if not self.truth:
             return self.status
-        last = self.truth[-1].tick
-        return [s for s in self.status if s.tick <= last]
+        first, last = self.truth[0].tick, self.truth[-1].tick
+        return [s for s in self.status if first <= s.tick < last]
 
 
 @dataclass

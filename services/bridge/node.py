@@ -20,8 +20,8 @@ import time
 
 from common import keys, se2
 from common.bus import Node
-from common.messages import (BridgeStatus, Clock, ControllerStatus, LocState, Odometry, TrialEvent, TruthPose,
-                             VelocityCommand)
+from common.messages import (ENDED_AT_ROUTE_END, BridgeStatus, Clock, ControllerStatus, LocState, Odometry,
+                             TrialEvent, TruthPose, VelocityCommand)
 from common.service import Control, Service, service_main
 from services.bridge.config import BridgeConfig
 from services.bridge.render import StereoRenderer
@@ -214,7 +214,7 @@ class BridgeService(Service):
             return True
         if (self.mode == "repeat" and self.cfg.clock.mode == "lockstep" and self.route_finished
                 and abs(s.v_ground) < AT_REST_MPS and abs(s.w_ground) < AT_REST_RADPS):
-            self._end_trial("end of route, at rest")
+            self._end_trial(ENDED_AT_ROUTE_END)
             return True
         return False
 
