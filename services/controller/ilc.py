@@ -14,13 +14,13 @@ so a robot left of the route needs a negative, rightward, correction.) The seque
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path as FsPath
 from typing import ClassVar
 
 import numpy as np
 
+from common.atomic_file import write_atomically
 from common.codec import Message, decode, encode
 from common.messages import check_name
 from services.controller.fl import FLGains, fl_angular_rate
@@ -101,15 +101,8 @@ class ILCMemory:
         return FsPath(directory) / f"{check_name('path_id', path_id)}.ilc"
 
     def save(self, directory: str | FsPath) -> FsPath:
-        target = self.file_of(directory, self.path_id)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_suffix(".tmp")
-        with open(tmp, "wb") as fh:
-            fh.write(encode(ILCFeedforward(path_id=self.path_id, trials=self.trials, w_ff_radps=self.w_ff.tolist())))
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-        return target
+        msg = ILCFeedforward(path_id=self.path_id, trials=self.trials, w_ff_radps=self.w_ff.tolist())
+        return write_atomically(self.file_of(directory, self.path_id), encode(msg))
 
     @classmethod
     def load(cls, directory: str | FsPath, path_id: str, n_vertices: int) -> "ILCMemory":

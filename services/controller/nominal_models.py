@@ -3,9 +3,9 @@ its end (identification.py), kept on disk (one file per route, written atomicall
 and restarts use it."""
 from __future__ import annotations
 
-import os
 from pathlib import Path as FsPath
 
+from common.atomic_file import write_atomically
 from common.codec import decode, encode
 from common.messages import BridgeStatus, LocState, NominalModel, Odometry, check_name
 from common.path import Path
@@ -17,15 +17,7 @@ def model_file(directory: str | FsPath, path_id: str) -> FsPath:
 
 
 def save_model(directory: str | FsPath, model: NominalModel) -> FsPath:
-    target = model_file(directory, model.path_id)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_suffix(".tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(encode(model))
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, target)
-    return target
+    return write_atomically(model_file(directory, model.path_id), encode(model))
 
 
 class NominalModels:

@@ -2,10 +2,10 @@
 written atomically (temp file, fsync, rename) so a crash never leaves half a route."""
 from __future__ import annotations
 
-import os
 import threading
 from pathlib import Path as FsPath
 
+from common.atomic_file import write_atomically
 from common.codec import DecodeError, decode, encode
 from common.messages import RouteMsg, check_name
 from common.path import Path
@@ -25,18 +25,7 @@ class RouteStore:
 
     def save(self, path: Path, stamp_s: float) -> FsPath:
         msg = path.to_msg(stamp_s)
-        target = self.file_of(path.path_id)
-        tmp = target.with_suffix(".tmp")
-        with open(tmp, "wb") as fh:
-            fh.write(encode(msg))
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-        dir_fd = os.open(self.dir, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
+        target = write_atomically(self.file_of(path.path_id), encode(msg))
         with self._lock:
             self._cache[path.path_id] = msg
         return target
