@@ -311,15 +311,14 @@ def casadi_solve_constrained(step: CorridorStep, settings: NMPCSettings):
     r = ca.vertcat(*res)
     alpha, cap, sig = nlp.alpha, nlp.cap, nlp.sig_start
     sig_lat = ca.fmax(ca.DM(sig[:, 1]) + ca.mtimes(ca.DM(nlp.dsig_v), v - ca.DM(nlp.v_start)), 0)
-    lo_lat, hi_lat, head_lim = nlp.limits()
     g, lbg, ubg = [], [], []
     for j in range(K):
         t_lat = ca.fmin(alpha * sig_lat[j], cap[j, 1])
         t_head = min(alpha * sig[j, 2], cap[j, 2])
         g += [E[j][1] + t_lat - sl[j], E[j][1] - t_lat + sl[K + j], E[j][2] + t_head - sl[2 * K + j],
               E[j][2] - t_head + sl[2 * K + j]]
-        lbg += [-np.inf, lo_lat[j], -np.inf, -head_lim[j]]
-        ubg += [hi_lat[j], np.inf, head_lim[j], np.inf]
+        lbg += [-np.inf, nlp.lo_lat[j], -np.inf, -nlp.head_lim[j]]
+        ubg += [nlp.hi_lat[j], np.inf, nlp.head_lim[j], np.inf]
     merit = 0.5 * ca.dot(r, r) + s.slack_weight * ca.sum1(sl)
     problem = {"x": ca.vertcat(v, w, sl), "f": merit, "g": ca.vertcat(*g)}
     solver = ca.nlpsol("rc", "ipopt", problem, {"ipopt.print_level": 0, "print_time": 0, "ipopt.tol": 1e-8,
@@ -327,7 +326,7 @@ def casadi_solve_constrained(step: CorridorStep, settings: NMPCSettings):
                                             "ipopt.sb": "yes"})
     w_lim = nlp.w_limits(step.result.iterate.v)
     x0 = np.concatenate([step.start.v, step.start.w, np.zeros(3 * K)])
-    lbx = np.concatenate([np.broadcast_to(nlp.v_lower(), (K,)), -w_lim, np.zeros(3 * K)])
+    lbx = np.concatenate([np.full(K, s.v_min_mps), -w_lim, np.zeros(3 * K)])
     ubx = np.concatenate([np.maximum(nlp.v_max, s.v_min_mps), w_lim, np.full(3 * K, np.inf)])
     t0 = time.perf_counter()
     out = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)

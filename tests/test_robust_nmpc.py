@@ -314,25 +314,6 @@ def test_boundary_costs_and_gradients_match_each_sequence_costed_alone():
     assert H.shape == (p.K, p.K) and np.all(np.linalg.eigvalsh(H) > -1e-12)
 
 
-def test_robust_law_started_beyond_the_tightened_band_neither_crawls_nor_prices_the_start():
-    """4-5 cm off in a +-6 cm corridor the start lies beyond the first step's 3-sigma band. The start's
-    excess is allowed (computed here by hand from the first step's sigma), the SQP keeps to the speed
-    ladder's rungs (no crawl below the bottom rung's 0.12 x schedule) and plans the mean back towards
-    the route."""
-    path = arc_path()
-    narrow = Corridor(path.s, 0.06, math.radians(20))
-    for off in (0.04, 0.05):
-        law = RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT)
-        res = law.angular(ctx_for(path, path.pose_at(8.0) + np.array([0.0, off, 0.0]), v=1.0, corridor=narrow))
-        nlp, it = law.last_step.nlp, law.last_step.result.iterate
-        e_lat, _ = nlp.problem.start_errors()
-        assert e_lat == pytest.approx(off, abs=1e-9)
-        assert nlp.relax[1] == pytest.approx(off + 3.0 * nlp.sig_start[0, 1] - 0.06, abs=1e-9) and nlp.relax[1] > 0
-        assert not res.stop_reason
-        assert np.all(it.v >= 0.12 * 1.0 - 1e-9) and res.v_mps >= 0.12 - 1e-9
-        assert np.all(np.diff(it.E[:, 1]) < 0) and it.E[-1, 1] < off - 0.01
-
-
 def test_constrained_law_with_a_wide_corridor_tracks_like_lb_nmpc():
     path = arc_path()
     wide = Corridor(path.s, 5.0, math.radians(80))

@@ -97,24 +97,6 @@ class CorridorNLP:
     v_start: np.ndarray
     v_max: np.ndarray         # (K,) never above the desired speeds (nor the speed cap's)
     w_limit_at: Callable[[float], float]   # |w| bound at a speed (actuator, Ackermann steering)
-    # how far the start already lies beyond the first step's tightened band (below lo, above hi, heading):
-    # allowed at every step, so the slack prices getting worse, not a recovery the robot cannot make in
-    # one period (the cost still pulls it back; later steps' own tightening still holds)
-    relax: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    v_floor: np.ndarray | None = None    # (K,) the slowest the SQP may choose; None: v_min_mps
-
-    def v_lower(self) -> np.ndarray | float:
-        return self.problem.s.v_min_mps if self.v_floor is None else self.v_floor
-
-    def limits(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(lo_lat, hi_lat, head_lim) the mean is held to: the corridor widened by `relax`."""
-        return self.lo_lat - self.relax[0], self.hi_lat + self.relax[1], self.head_lim + self.relax[2]
-
-    def start_excess(self, e_lat: float, e_head: float) -> tuple[float, float, float]:
-        """`relax` for a start with these errors."""
-        t, _ = self.tighten(self.sig_start[:1])
-        return (max(0.0, self.lo_lat[0] + t[0, 1] - e_lat), max(0.0, e_lat + t[0, 1] - self.hi_lat[0]),
-                max(0.0, abs(e_head) + t[0, 2] - self.head_lim[0]))
 
     def w_limits(self, v: np.ndarray) -> np.ndarray:
         v_min = self.problem.s.v_min_mps
@@ -130,9 +112,8 @@ class CorridorNLP:
         sig = self.sig_start.copy()
         sig[:, 1] = np.maximum(self.sig_start[:, 1] + self.dsig_v @ (v - self.v_start), 0.0)
         t, _ = self.tighten(sig)
-        lo_lat, hi_lat, head_lim = self.limits()
-        viol = (np.maximum(E[:, 1] + t[:, 1] - hi_lat, 0) + np.maximum(lo_lat - E[:, 1] + t[:, 1], 0)
-                + np.maximum(np.abs(E[:, 2]) + t[:, 2] - head_lim, 0))
+        viol = (np.maximum(E[:, 1] + t[:, 1] - self.hi_lat, 0) + np.maximum(self.lo_lat - E[:, 1] + t[:, 1], 0)
+                + np.maximum(np.abs(E[:, 2]) + t[:, 2] - self.head_lim, 0))
         merit = 0.5 * float(r @ r) + self.problem.s.slack_weight * float(viol.sum())
         return Iterate(v, w, X, E, dE, r, J, sig, merit, float(viol.max()), ref)
 
@@ -140,11 +121,11 @@ class CorridorNLP:
         """The QP's step (2K,) from `it` inside the actuator limits and the trust region, or None."""
         s = self.problem.s
         w_lim = self.w_limits(it.v)
-        lo_d = np.concatenate([np.maximum(self.v_lower() - it.v, -trust_v), np.maximum(-w_lim - it.w, -trust_w)])
+        lo_d = np.concatenate([np.maximum(s.v_min_mps - it.v, -trust_v), np.maximum(-w_lim - it.w, -trust_w)])
         hi_d = np.concatenate([np.minimum(self.v_max - it.v, trust_v), np.minimum(w_lim - it.w, trust_w)])
         tight, free = self.tighten(it.sig)
         dx, _ = qp.solve(it.r, it.J, it.E, it.dE, tight, self.alpha * self.dsig_v * free[:, None],
-                         *self.limits(), lo_d, np.maximum(hi_d, lo_d))
+                         self.lo_lat, self.hi_lat, self.head_lim, lo_d, np.maximum(hi_d, lo_d))
         return dx
 
 
@@ -167,7 +148,7 @@ def solve_corridor(nlp: CorridorNLP, start: Iterate, qp: CorridorQP, trust_v: fl
         for beta in (1.0, 0.5, 0.25):                 # eq. 7.11's beta, by the merit function
             if evals >= s.max_evals:
                 break
-            cand = nlp.evaluate(np.clip(cur.v + beta * dx[:K], nlp.v_lower(), nlp.v_max), cur.w + beta * dx[K:])
+            cand = nlp.evaluate(np.clip(cur.v + beta * dx[:K], s.v_min_mps, nlp.v_max), cur.w + beta * dx[K:])
             evals += 1
             if cand.merit < cur.merit - 1e-12:
                 accepted = cand

@@ -320,12 +320,6 @@ class HorizonProblem:
         return np.column_stack([cd * d[:, 0] + sd * d[:, 1], -sd * d[:, 0] + cd * d[:, 1],
                                 np.remainder(X[1:, 2] - D[1:, 2] + math.pi, 2 * math.pi) - math.pi])
 
-    def start_errors(self) -> tuple[float, float]:
-        """(lateral, heading) error of the start (the estimate carried to now) against its own desired pose."""
-        x0, D0 = self.start.x0, self.ref.poses[0]
-        lat = -self.ref.sin_dir[0] * (x0[0] - D0[0]) + self.ref.cos_dir[0] * (x0[1] - D0[1])
-        return float(lat), float(np.remainder(x0[2] - D0[2] + math.pi, 2 * math.pi) - math.pi)
-
     def error_jacobian(self, S: np.ndarray) -> np.ndarray:
         """d errors / d inputs (K, 3, n) from the rollout's sensitivities S (K+1, 3, n)."""
         cd, sd = self.ref.cos_dir[1:, None], self.ref.sin_dir[1:, None]

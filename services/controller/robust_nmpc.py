@@ -36,7 +36,7 @@ from services.controller.laws import LawResult, SolveReport, StepContext, Uncert
 from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
 from services.controller.nmpc import Plan, build_problem, crab_offsets
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import Rung, fastest_fitting_rung, rung_floor
+from services.controller.speed_ladder import Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
@@ -153,8 +153,6 @@ class RCLBNMPCLaw:
         sig = rung.sig if rung is not None else np.zeros((base.K, 3))
         nlp = CorridorNLP(problem, lo_lat, hi_lat, head_lim, cap, self.alpha, sig, np.zeros((base.K, base.K)), v,
                           v_max, ctx.w_limit_at)
-        nlp = dataclasses.replace(nlp, relax=nlp.start_excess(*problem.start_errors()),
-                                  v_floor=None if rung is None else rung_floor(rung, base))
         start = nlp.evaluate(v, w, A)
         if rung is not None and (reason := self._uncertainty_too_wide(nlp)):
             return LawResult(0.0, v_mps=0.0, predicted=start.X[1:], stop_reason=reason,

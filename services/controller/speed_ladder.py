@@ -46,21 +46,11 @@ def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: H
     speeds would be driven at the rung's and fall back next step (two-step chatter)."""
     vk = np.clip(SPEED_LADDER[k] * base.v, v_min, None)
     p = base.following(vk)
-    # same path: corrections scaled down with speed; never up (a correction made at a crawl is a turn on
-    # the spot, which no faster rung could drive)
-    wk = vk * p.ref.kappa + (w - v * base.ref.kappa) * np.minimum(1.0, vk / np.maximum(v, 1e-3))
+    v0 = np.maximum(v, 1e-3)
+    wk = vk * p.ref.kappa + (w - v * base.ref.kappa) * vk / v0    # same path, corrections scaled with speed
     X = p.rollout(wk, with_jac=True, v=vk, with_v_jac=True, a_out=a_out)[0]
     Sig, sig = cov.along(p, X, a_out, vk, wk)
     return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig))
-
-
-def rung_floor(rung: Rung, base: HorizonProblem) -> np.ndarray:
-    """The slowest speeds the SQP may choose below a rung: the next rung's (the bottom rung's own).
-    Speed is the ladder's to cut, rung by rung with its sigma checked; an SQP free to crawl buys a
-    narrower band with speed whenever the mean is outside it, and at a crawl a robot can only turn on
-    the spot (on a side slope it slides downhill faster than it can steer back)."""
-    k = min(rung.index + 1, len(SPEED_LADDER) - 1)
-    return np.minimum(np.maximum(SPEED_LADDER[k] * base.v, base.s.v_min_mps), rung.v)
 
 
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
