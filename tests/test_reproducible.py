@@ -18,7 +18,7 @@ from common.store_client import ExperienceOutbox, WindowCache
 from deploy.experiment import run_experiment
 from deploy.reproducible import TRIAL_WALL_CLOCK_KEYS, differences, reproducible_part
 from tests.conftest import wait_until
-from tests.test_store_service import N_VERTICES, StoreRig
+from tests.test_store_service import N_VERTICES, rig  # noqa: F401  (the store fixture)
 
 MODEL = "unicycle-test"
 
@@ -70,15 +70,6 @@ def test_the_comparison_leaves_out_exactly_the_wall_clock_values():
     assert differences({"x": 1}, {"y": 1}) == [".x: only in the first", ".y: only in the second"]
     # the input is not changed
     assert a["trials"][0]["wall_time_s"] == 2.0 and a["identified_model"]["stamp_s"] == 1.0
-
-
-@pytest.fixture
-def rig(tmp_path):
-    r = StoreRig(tmp_path)
-    try:
-        yield r
-    finally:
-        r.close()
 
 
 def _drive(outbox: ExperienceOutbox, trial: int, speeds: list[float]) -> None:

@@ -1,7 +1,7 @@
 """One taught vision map per route in one msgpack file: {"format", "version", "camera", "meta",
-"keyframes"}; arrays as {"dtype", "shape", "data"} (little-endian bytes). Written atomically (temporary
-file in the same directory, fsync, os.replace, fsync of the directory): a crash leaves the old map or
-the new one, never half of one. Loading checks everything and raises MapFileError with the reason."""
+"keyframes"}; arrays as {"dtype", "shape", "data"} (little-endian bytes). Written atomically
+(common/atomic_file.py): a crash leaves the old map or the new one, never half of one. Loading checks
+everything and raises MapFileError with the reason."""
 from __future__ import annotations
 
 import os
@@ -10,6 +10,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
+from common.atomic_file import write_atomically
 from services.localizer.vision.camera import StereoCamera
 from services.localizer.vision.teach_repeat import Keyframe, VisionMap
 
@@ -49,25 +50,7 @@ def save_map(path: str | os.PathLike, vmap: VisionMap) -> None:
         blob = msgpack.packb(doc, use_bin_type=True)
     except (TypeError, ValueError, OverflowError) as exc:
         raise ValueError(f"vision map not serializable (meta must hold plain values): {exc}") from exc
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(blob)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    try:
-        fd = os.open(path.parent, os.O_RDONLY)
-    except OSError:
-        return                      # platforms without directory handles
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    write_atomically(path, blob)
 
 
 def _array(where: str, obj, dtype: str, cols: int | None) -> np.ndarray:
