@@ -6,7 +6,10 @@ import math
 import numpy as np
 import pytest
 
+from common.path import Path
 from services.controller.calibration import MARGIN, WINDOW, Prediction, SpreadCalibration
+from services.controller.horizon_covariance import HorizonCovariance
+from services.controller.uncertainty import propagate, route_sigmas
 
 
 def prediction(step: int, cal: SpreadCalibration, sigma: float = 0.01, heading: float = 0.0) -> Prediction:
@@ -112,3 +115,37 @@ def test_the_teach_factors_hold_until_a_window_is_seen_and_a_later_trial_continu
     nxt = cal.continued()
     assert nxt.scales[0] == pytest.approx(MARGIN * 25.0 / 9.0) and nxt.checked[0] == 0
     assert len(nxt.recent[0]) == WINDOW
+
+
+def test_a_factor_learned_at_speed_widens_only_the_models_share_of_the_spread():
+    """Errors 4x the model's share widen that share 16x in variance, not the localizer's own covariance
+    carried along the plan: at standstill (the spread all the localizer's) the robot's 3-sigma region is
+    the localizer's, where widening the whole spread had stopped a robot before it moved."""
+    rng = np.random.default_rng(2)
+    cal, model, loc = SpreadCalibration(horizon=1), 0.01, 0.02
+    for k in range(3000):
+        wide = math.sqrt(loc ** 2 + cal.scales[0] * model ** 2)
+        cal.predict(k, [Prediction(1, 0.0, 0.0, wide, wide, float(cal.scales[0]), loc, loc)])
+        err = 4.0 * model * rng.standard_normal(2)          # the localizer's error is in the estimate's
+        cal.realize(k + 1, err[0], err[1], 0.0, 0.0)
+    assert 9.0 < cal.scales[0] < 60.0
+    cov = HorizonCovariance(var=None, Sigma0=np.eye(3), dt=0.1, gamma=2.0, factors=np.array(cal.spread_factors()))
+    standstill = np.array([[0.0, loc, loc]])
+    moving = np.array([[0.0, math.hypot(loc, model), math.hypot(loc, model)]])
+    assert np.allclose(cov.widened(standstill, standstill), standstill)
+    assert cov.widened(moving, standstill)[0, 1] == pytest.approx(math.sqrt(loc ** 2 + cal.scales[0] * model ** 2))
+
+
+def test_the_localizers_share_is_its_covariance_carried_along_the_plan():
+    """Against the sigma-point transform with no disturbance (an independent computation): the
+    localizer's covariance at the captured pose, carried along a curved plan."""
+    path = Path("arc", np.column_stack([np.linspace(0, 10, 101), np.zeros(101), np.zeros(101)]))
+    v, w = np.full(15, 1.0), np.full(15, 0.3)
+    X = np.zeros((16, 3))
+    for j in range(15):
+        X[j + 1] = X[j] + 0.1 * np.array([v[j] * math.cos(X[j, 2]), v[j] * math.sin(X[j, 2]), w[j]])
+    P = np.diag([0.02 ** 2, 0.01 ** 2, math.radians(2.0) ** 2])
+    reference = route_sigmas(propagate(X, None, np.zeros((15, 3)), np.zeros((15, 3)), v, w, P, 0.1, 2.0),
+                             np.zeros(15))
+    cov = HorizonCovariance(var=None, Sigma0=P, dt=0.1, gamma=2.0, Sigma_loc=P, captured_xy=(0.0, 0.0))
+    assert np.allclose(cov.localizer_part(X, np.zeros(15)), reference, rtol=0.02)

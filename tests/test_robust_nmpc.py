@@ -15,9 +15,11 @@ from common.path import Path
 from services.controller.corridor import Corridor
 from services.controller.corridor_sqp import constrained_residual
 from services.controller.gauss_newton import gauss_newton
+from services.controller.horizon_covariance import HorizonCovariance, variance_model
 from services.controller.laws import StepContext
 from services.controller.nmpc import build_problem
 from services.controller.settings import NMPCSettings
+from services.controller.speed_ladder import fastest_fitting_rung
 from services.controller.minmax import SIGNS
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
@@ -382,6 +384,24 @@ def test_robust_law_keeps_turn_rate_headroom_where_slowing_down_gives_it():
     assert skid.v_mps > 0.6                                    # one rung down, not the bottom of the ladder
     ackermann = run(lambda v: min(2.0, abs(v) * w_max))        # max curvature 1.05 x the route's
     assert ackermann.uncertainty.speed_scale == 1.0 and ackermann.v_mps > 0.95
+
+
+def test_a_faster_rung_never_scales_a_crawls_turn_rate_corrections_up():
+    """A warm start that crawled at 0.05 m/s with a 0.5 rad/s correction: the full-speed rung keeps that
+    correction (scaled down, never up by 1.0 / 0.05, which made a turn of -5.8 rad/s out of a crawl's
+    and stopped the robot on its sigma)."""
+    path = arc_path()
+    ctx = ctx_for(path, path.pose_at(20.0), v=1.0, corridor=Corridor(path.s, 1.0, math.radians(60)))
+    s = NMPCSettings()
+    base, _ = build_problem(ctx, s, DT, None)
+    v = np.full(base.K, 0.05)
+    w = v * base.ref.kappa + 0.5
+    cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(None, s), DT, s.sp_gamma)
+    cap = np.full((base.K, 3), np.inf)
+    rung = fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, None, np.empty((base.K, 9)))
+    assert rung.index == 0
+    correction = rung.w - rung.v * rung.problem.ref.kappa
+    assert np.all(np.abs(correction) <= 0.5 + 1e-9) and np.all(np.abs(correction) > 0.4)
 
 
 def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit():

@@ -20,9 +20,12 @@ over the horizon where independent disturbances grow with its square root, and o
 per-period disturbance would widen the first steps (whose spread decides a stop) for the errors of
 the last. Each realized prediction says which factor would just have held it,
 
-    need = max(1, (err^2 / 9 - sigma_estimate^2) / sigma_model^2)   (lateral and heading, the larger)
+    need = max(1, (err^2 / 9 - sigma_estimate^2 - sigma_loc^2) / (sigma_model^2 - sigma_loc^2))
+                                                                     (lateral and heading, the larger)
 
-with sigma_model the spread before widening; kappa_j is MARGIN times the largest need (where above
+with sigma_model the spread before widening and sigma_loc the share of it that is the localizer's own
+covariance carried along the plan: only what the motion model adds is widened (horizon_covariance.py),
+so a factor learned at speed does not multiply the estimate's noise at standstill. kappa_j is MARGIN times the largest need (where above
 1) of the last WINDOW predictions of step j (conformal prediction's recent-maximum rule): a new
 exceedance widens at once, and the widening is forgotten WINDOW ticks after the errors that asked
 for it, so a corner's surprise does not slow the straight that follows for the rest of the trial.
@@ -53,6 +56,8 @@ class Prediction:
     sigma_lat_m: float
     sigma_head_rad: float
     scale: float              # the factor of step j the spread was predicted with
+    loc_sigma_lat_m: float = 0.0      # the localizer's share of the spread (not widened)
+    loc_sigma_head_rad: float = 0.0
 
 
 class SpreadCalibration:
@@ -89,8 +94,8 @@ class SpreadCalibration:
             h = math.remainder(heading_rad - p.heading_rad, 2 * math.pi)
             z_lat = d / math.sqrt(p.sigma_lat_m ** 2 + var_lat_m2 + 1e-12)
             z_head = h / math.sqrt(p.sigma_head_rad ** 2 + var_head_rad2 + 1e-12)
-            scale = max(p.scale, 1e-9)
-            need = max(_need(d, var_lat_m2, p.sigma_lat_m ** 2 / scale), _need(h, var_head_rad2, p.sigma_head_rad ** 2 / scale))
+            need = max(_need(d, var_lat_m2, p.loc_sigma_lat_m, p.sigma_lat_m, p.scale),
+                       _need(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale))
             out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
         return out
 
@@ -115,6 +120,9 @@ class SpreadCalibration:
         return tuple(float(x) for x in np.sqrt(self.scales))
 
 
-def _need(err: float, var_estimate: float, var_model: float) -> float:
-    """The factor on the model's variance that puts `err` on the 3-sigma boundary (at least 1)."""
-    return max(1.0, (err * err / 9.0 - var_estimate) / max(var_model, 1e-18))
+def _need(err: float, var_estimate: float, sigma_loc: float, sigma: float, scale: float) -> float:
+    """The factor on the model's share of the variance that puts `err` on the 3-sigma boundary (at least
+    1); `sigma` was predicted with that share times `scale`."""
+    loc2 = min(sigma_loc * sigma_loc, sigma * sigma)
+    var_model = (sigma * sigma - loc2) / max(scale, 1e-9)
+    return max(1.0, (err * err / 9.0 - var_estimate - loc2) / max(var_model, 1e-18))

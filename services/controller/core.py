@@ -54,6 +54,9 @@ class ControllerCore:
         for j, x in enumerate(np.asarray(law.predicted)):
             pr = self.path.project(x, hint=hint)
             hint = pr.vertex
+            loc = (unc.horizon_loc_sigma_lat_m[j], unc.horizon_loc_sigma_head_rad[j]) \
+                if j < len(unc.horizon_loc_sigma_lat_m) else (0.0, 0.0)
             predictions.append(Prediction(j + 1, pr.lateral_m, pr.heading_rad, unc.horizon_sigma_lat_m[j],
-                                          unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0))
+                                          unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0,
+                                          *loc))
         self.calibration.predict(tick, predictions)

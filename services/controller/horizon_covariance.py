@@ -1,9 +1,14 @@
 """The covariance along the horizon (thesis 6.2.2, 7.3.2) for the uncertainty-aware laws: the
 localizer's covariance carried through the localization delay (eq. 7.12), then the sigma-point
-transform (uncertainty.py) along a planned mean sequence."""
+transform (uncertainty.py) along a planned mean sequence.
+
+The online calibration (calibration.py) widens only what the motion model adds: the localizer's own
+covariance, carried rigidly along the plan, is not the model's to be wrong about. Widening the whole
+spread would, at standstill, multiply the estimate's noise by factors learned from prediction errors
+at speed, and a robot whose corridor is a few estimate-sigmas wide could never start again."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,26 +32,56 @@ class HorizonCovariance:
     dt: float
     gamma: float
     factors: np.ndarray | None = None
+    Sigma_loc: np.ndarray = field(default_factory=DEFAULT_START_COV.copy)   # the localizer's, where captured
+    captured_xy: tuple[float, float] = (0.0, 0.0)  # where it was captured (route frame)
 
     @classmethod
     def at_start(cls, pose_cov: np.ndarray | None, start: HorizonStart, var: DisturbanceVariance, dt: float,
                  gamma: float, factors: tuple[float, ...] = ()) -> HorizonCovariance:
         """The localizer's covariance, carried through the periods of localization delay (eq. 7.12)."""
         Sigma = np.array(pose_cov, dtype=float) if pose_cov is not None else DEFAULT_START_COV.copy()
+        loc, at = Sigma.copy(), (start.delay[0].pose if start.delay else start.x0)
         if start.delay:
             G, V = var.with_mean(np.array([p.a for p in start.delay]))
             for p, g, vg in zip(start.delay, G, V):
                 Sigma = sigma_point_step(p.pose, Sigma, g, vg, p.v_mps, p.w_radps, dt, gamma)
-        return cls(var, Sigma, dt, gamma, np.asarray(factors, dtype=float) if factors else None)
+        return cls(var, Sigma, dt, gamma, np.asarray(factors, dtype=float) if factors else None, loc,
+                   (float(at[0]), float(at[1])))
 
-    def widened(self, values: np.ndarray) -> np.ndarray:
-        """Per-step standard deviations (or their derivatives), rows j = 1..K, times the calibration's factors."""
+    def localizer_part(self, X: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Route-frame standard deviations (K, 3) of x_1..x_K (measured along the route's `direction` (K,))
+        that the localizer's covariance alone gives, carried rigidly along the plan X (K+1, 3): a heading error at the captured pose swings every later
+        position about it, d(x, y)_j / d theta = (-(y_j - y_c), x_j - x_c)."""
+        K = len(X) - 1
+        J = np.zeros((K + 1, 3, 3))
+        J[:, 0, 0] = J[:, 1, 1] = J[:, 2, 2] = 1.0
+        J[:, 0, 2] = -(X[:, 1] - self.captured_xy[1])
+        J[:, 1, 2] = X[:, 0] - self.captured_xy[0]
+        return route_sigmas(J @ self.Sigma_loc @ J.transpose(0, 2, 1), direction)
+
+    def _kappa(self, n_rows: int) -> np.ndarray:
+        k = np.ones(n_rows)
+        n = min(n_rows, len(self.factors))
+        k[:n] = np.square(self.factors[:n])
+        return k
+
+    def widened(self, sig: np.ndarray, loc: np.ndarray) -> np.ndarray:
+        """Per-step standard deviations (K, 3): the model's share of the variance, sig^2 - loc^2, times the
+        calibration's factor kappa_j, plus the localizer's share `loc` as it is."""
         if self.factors is None:
-            return values
-        f = np.ones(len(values))
-        n = min(len(f), len(self.factors))
-        f[:n] = self.factors[:n]
-        return values * f.reshape((-1,) + (1,) * (values.ndim - 1))
+            return sig
+        k = self._kappa(len(sig)).reshape(-1, 1)
+        loc2 = np.minimum(np.square(loc), np.square(sig))
+        return np.sqrt(loc2 + k * (np.square(sig) - loc2))
+
+    def widened_derivative(self, dsig: np.ndarray, sig: np.ndarray, loc: np.ndarray) -> np.ndarray:
+        """The derivative (rows j) of the widened lateral sigma from that of the model's, `dsig`, the
+        localizer's share held fixed."""
+        if self.factors is None:
+            return dsig
+        k = self._kappa(len(sig))
+        wide = self.widened(sig, loc)[:, 1]
+        return dsig * (k * sig[:, 1] / np.maximum(wide, 1e-12)).reshape(-1, 1)
 
     def along(self, problem: HorizonProblem, X: np.ndarray, A: np.ndarray, v: np.ndarray,
               w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -71,6 +71,9 @@ class UncertaintyReport:
     # route-frame 1-sigma of the predicted x_1..x_K (what the online calibration checks)
     horizon_sigma_lat_m: tuple[float, ...] = ()
     horizon_sigma_head_rad: tuple[float, ...] = ()
+    # the localizer's share of them (its covariance carried along the plan; the calibration leaves it)
+    horizon_loc_sigma_lat_m: tuple[float, ...] = ()
+    horizon_loc_sigma_head_rad: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)

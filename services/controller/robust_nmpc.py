@@ -41,10 +41,12 @@ from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
 
-def _horizon_sigmas(sig: np.ndarray) -> dict:
-    """UncertaintyReport's per-step spreads from route-frame sigmas (K, 3)."""
+def _horizon_sigmas(sig: np.ndarray, loc: np.ndarray) -> dict:
+    """UncertaintyReport's per-step spreads from route-frame sigmas (K, 3) and their localizer's share."""
     return {"horizon_sigma_lat_m": tuple(float(x) for x in sig[:, 1]),
-            "horizon_sigma_head_rad": tuple(float(x) for x in sig[:, 2])}
+            "horizon_sigma_head_rad": tuple(float(x) for x in sig[:, 2]),
+            "horizon_loc_sigma_lat_m": tuple(float(x) for x in loc[:, 1]),
+            "horizon_loc_sigma_head_rad": tuple(float(x) for x in loc[:, 2])}
 
 
 @dataclass(frozen=True)
@@ -74,7 +76,7 @@ class MMLBNMPCLaw:
         gp = self.model_for(ctx)
         problem, w_limit = build_problem(ctx, s, self.dt, gp)
         u0 = self._warm_start(problem, w_limit)
-        sig = self._sigmas(ctx, problem, gp, u0)
+        sig, loc = self._sigmas(ctx, problem, gp, u0)
         bound = s.mm_sigmas * sig                                   # (K, 3)
         if self._qp is None or self._qp.K != problem.K:
             self._qp = MinMaxQP(problem.K)
@@ -86,7 +88,7 @@ class MMLBNMPCLaw:
         return LawResult(float(res.u[0]), predicted=X[1:],
                          solve=SolveReport(res.cost, res.iterations, res.evaluations, res.status, gp is not None),
                          uncertainty=UncertaintyReport(float(sig[:, 1].max()), float(sig[:, 2].max()),
-                                                       worst_case=worst_case, **_horizon_sigmas(sig)))
+                                                       worst_case=worst_case, **_horizon_sigmas(sig, loc)))
 
     def _warm_start(self, problem: HorizonProblem, w_limit: np.ndarray) -> np.ndarray:
         if self.last_plan is None:
@@ -94,15 +96,16 @@ class MMLBNMPCLaw:
         prev = self.last_plan.w
         return np.clip(np.concatenate([prev[1:], prev[-1:]]), -w_limit, w_limit)
 
-    def _sigmas(self, ctx: StepContext, problem: HorizonProblem, gp, u0: np.ndarray) -> np.ndarray:
-        """Route-frame sigmas (K, 3) along the warm start's plan: computed once per step (the covariance
-        moves little within a solve)."""
+    def _sigmas(self, ctx: StepContext, problem: HorizonProblem, gp, u0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Route-frame sigmas (K, 3) along the warm start's plan, widened, and their localizer's share:
+        computed once per step (the covariance moves little within a solve)."""
         s = self.settings
         A = np.empty((problem.K, 9))
         X0, _ = problem.rollout(u0, with_jac=True, a_out=A)     # the solver's first linearization reuses it
         cov = HorizonCovariance.at_start(ctx.pose_cov, problem.start, variance_model(gp, s), self.dt, s.sp_gamma,
                                          ctx.spread_factors)
-        return cov.widened(cov.along(problem, X0, A, problem.v, u0)[1])
+        loc = cov.localizer_part(X0, problem.ref.direction_rad[1:])
+        return cov.widened(cov.along(problem, X0, A, problem.v, u0)[1], loc), loc
 
 
 @dataclass(frozen=True)
@@ -160,7 +163,7 @@ class RCLBNMPCLaw:
         if rung is not None:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
-        return self._report(nlp, start, result, gp is not None, 1.0 if rung is None else rung.scale)
+        return self._report(nlp, start, result, gp is not None, rung)
 
     def _corridor_of(self, ctx: StepContext) -> Corridor:
         if ctx.corridor is None:
@@ -219,7 +222,7 @@ class RCLBNMPCLaw:
         raw = lateral_sigma_speed_jacobian(start.X, rung.Sigma, problem.effective(start.v)[0],
                                            problem.ref.direction_rad[1:], rung.sig_model[:, 1], self.dt, dvar_dv,
                                            dvar_dvprev, None if problem.lag is None else problem.lag.Lv)
-        return cov.widened(raw)
+        return cov.widened_derivative(raw, rung.sig_model, rung.sig_loc)
 
     def _qp_for(self, K: int) -> CorridorQP:
         if self._qp is None or self._qp.K != K:
@@ -227,7 +230,7 @@ class RCLBNMPCLaw:
         return self._qp
 
     def _report(self, nlp: CorridorNLP, start: Iterate, result: CorridorResult, learned: bool,
-                speed_scale: float) -> LawResult:
+                rung: Rung | None) -> LawResult:
         it = result.iterate
         cost = 0.5 * float(it.r @ it.r)
         self.last_step = CorridorStep(nlp, start, result)
@@ -235,5 +238,7 @@ class RCLBNMPCLaw:
         return LawResult(float(it.w[0]), v_mps=float(it.v[0]), predicted=it.X[1:],
                          solve=SolveReport(cost, result.iterations, result.evaluations, result.status, learned),
                          uncertainty=UncertaintyReport(float(it.sig[:, 1].max()), float(it.sig[:, 2].max()),
-                                                       speed_scale=speed_scale, violation=it.violation,
-                                                       **_horizon_sigmas(it.sig)))
+                                                       speed_scale=1.0 if rung is None else rung.scale,
+                                                       violation=it.violation,
+                                                       **_horizon_sigmas(it.sig, np.zeros_like(it.sig) if rung is None
+                                                                         else rung.sig_loc)))

@@ -34,6 +34,7 @@ class Rung:
     Sigma: np.ndarray       # (K+1, 3, 3)
     sig_model: np.ndarray   # (K, 3) route-frame standard deviations of x_1..x_K, as the model gives them
     sig: np.ndarray         # (K, 3) the same widened by the online calibration (what the corridor must hold)
+    sig_loc: np.ndarray     # (K, 3) the localizer's share of them (never widened)
 
     @property
     def scale(self) -> float:
@@ -46,11 +47,13 @@ def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: H
     speeds would be driven at the rung's and fall back next step (two-step chatter)."""
     vk = np.clip(SPEED_LADDER[k] * base.v, v_min, None)
     p = base.following(vk)
-    v0 = np.maximum(v, 1e-3)
-    wk = vk * p.ref.kappa + (w - v * base.ref.kappa) * vk / v0    # same path, corrections scaled with speed
+    # same path: corrections scaled down with speed, never up (a correction made at a crawl is a turn on
+    # the spot, which no faster rung could drive)
+    wk = vk * p.ref.kappa + (w - v * base.ref.kappa) * np.minimum(1.0, vk / np.maximum(v, 1e-3))
     X = p.rollout(wk, with_jac=True, v=vk, with_v_jac=True, a_out=a_out)[0]
     Sig, sig = cov.along(p, X, a_out, vk, wk)
-    return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig))
+    loc = cov.localizer_part(X, p.ref.direction_rad[1:])
+    return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig, loc), loc)
 
 
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
