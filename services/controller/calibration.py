@@ -25,8 +25,9 @@ the last. Each realized prediction says which factor would just have held it,
 
 with sigma_model the spread before widening and sigma_loc the share of it that is the localizer's own
 covariance carried along the plan: only what the motion model adds is widened (horizon_covariance.py),
-so a factor learned at speed does not multiply the estimate's noise at standstill. kappa_j is MARGIN times the largest need (where above
-1) of the last WINDOW predictions of step j (conformal prediction's recent-maximum rule): a new
+so a factor learned at speed does not multiply the estimate's noise at standstill. kappa_j is MARGIN
+times the largest need (where above 1) of the last WINDOW predictions of step j (conformal
+prediction's recent-maximum rule): a new
 exceedance widens at once, and the widening is forgotten WINDOW ticks after the errors that asked
 for it, so a corner's surprise does not slow the straight that follows for the rest of the trial.
 With exchangeable errors about 1 / (WINDOW + 1) of the predictions leave their widened 3-sigma

@@ -50,8 +50,9 @@ class HorizonCovariance:
 
     def localizer_part(self, X: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Route-frame standard deviations (K, 3) of x_1..x_K (measured along the route's `direction` (K,))
-        that the localizer's covariance alone gives, carried rigidly along the plan X (K+1, 3): a heading error at the captured pose swings every later
-        position about it, d(x, y)_j / d theta = (-(y_j - y_c), x_j - x_c)."""
+        that the localizer's covariance alone gives, carried rigidly along the plan X (K+1, 3): a heading
+        error at the captured pose swings every later position about it,
+        d(x, y)_j / d theta = (-(y_j - y_c), x_j - x_c)."""
         K = len(X) - 1
         J = np.zeros((K + 1, 3, 3))
         J[:, 0, 0] = J[:, 1, 1] = J[:, 2, 2] = 1.0
