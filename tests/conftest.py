@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import io
+import signal
 import time
 from pathlib import Path
 
@@ -22,6 +23,12 @@ SHORT_SCENARIO = {
     "controller": {"algorithm": "fl"},
     "trials": {"count": 2, "speed": 0.8},
 }
+
+
+def ctrl_c_reaches_child() -> None:
+    """preexec_fn for a child a test will send SIGINT: a test run started in the background (`nohup ...
+    &`) ignores SIGINT, every child inherits that, and Python then never raises KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def wait_until(predicate, timeout_s: float, what: str) -> None:

@@ -22,7 +22,7 @@ from common.messages import HyperMsg, HyperDim
 from common.scenario import parse_scenario
 from deploy.metrics import TrialRecord
 from deploy.router import free_port, open_router
-from tests.conftest import SHORT_SCENARIO, wait_until
+from tests.conftest import SHORT_SCENARIO, ctrl_c_reaches_child, wait_until
 from tests.test_shutdown import alive, children_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,7 +40,8 @@ class Running:
 
     def __init__(self, *args: str):
         self.proc = subprocess.Popen([*LBC, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+                                     text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                                     preexec_fn=ctrl_c_reaches_child)
         self.lines: list[str] = []
         self._cond = threading.Condition()
         self._reader = threading.Thread(target=self._read, daemon=True)

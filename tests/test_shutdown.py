@@ -9,7 +9,7 @@ import sys
 import pytest
 from mcap.reader import make_reader
 
-from tests.conftest import SHORT_SCENARIO, wait_until
+from tests.conftest import SHORT_SCENARIO, ctrl_c_reaches_child, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -41,7 +41,8 @@ def test_interrupting_an_experiment_leaves_no_processes_and_a_readable_recording
     long_run = dict(SHORT_SCENARIO, trials={"count": 50, "speed": 0.8})
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "experiment", "run", str(scenario_file(long_run)),
-                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            preexec_fn=ctrl_c_reaches_child)
     try:
         wait_until(lambda: (out / "summary.json").exists() and '"trial": 1' in (out / "summary.json").read_text(),
                    60.0, "the first trial to finish")
