@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from common.path import Path
-from services.controller.calibration import MARGIN, WINDOW, Prediction, SpreadCalibration
+from services.controller.calibration import MARGIN, PLACE_BIN_M, WINDOW, Prediction, SpreadCalibration
 from services.controller.horizon_covariance import HorizonCovariance
 from services.controller.uncertainty import propagate, route_sigmas
 
@@ -115,6 +115,36 @@ def test_the_teach_factors_hold_until_a_window_is_seen_and_a_later_trial_continu
     nxt = cal.continued()
     assert nxt.scales[0] == pytest.approx(MARGIN * 25.0 / 9.0) and nxt.checked[0] == 0
     assert len(nxt.recent[0]) == WINDOW
+
+
+def drive_pass(cal: SpreadCalibration, miss_at, step_m: float = 0.25, length_m: float = 100.0) -> None:
+    """One pass along a 100 m route, a one-step prediction every `step_m` made at its place with the
+    factor the calibration gives there; `miss_at(s)`: the real error in model sigmas (0.01 m)."""
+    for k, s in enumerate(np.arange(0.0, length_m, step_m)):
+        kappa = float(cal.factors_at(s)[0])
+        f = math.sqrt(kappa)
+        cal.predict(k, [Prediction(1, 0.0, 0.0, 0.01 * f, 0.01 * f, kappa, s_m=float(s))])
+        cal.realize(k + 1, 0.01 * miss_at(s), 0.0, 0.0, 0.0)
+
+
+def test_a_places_surprise_widens_the_spread_there_on_the_next_pass_and_nowhere_else():
+    """A rough patch at 40-44 m the model does not know: 4-sigma errors there. The recent window has
+    forgotten them by the end of the pass (the next trial would enter the patch unwidened); the place
+    remembers them for the next pass, over the patch and its neighbouring bins only, and a later pass
+    whose errors there are calibrated (the model has learned the patch) narrows it again."""
+    rough = lambda s: 4.0 if 40.0 <= s < 44.0 else 0.0      # noqa: E731
+    cal = SpreadCalibration(horizon=1)
+    drive_pass(cal, rough)
+    assert cal.scales[0] == 1.0 and cal.factors_at(None)[0] == 1.0
+    second = cal.continued()
+    assert second.factors_at(41.0)[0] == pytest.approx(MARGIN * 16.0 / 9.0)
+    assert second.factors_at(40.0 - PLACE_BIN_M)[0] == pytest.approx(MARGIN * 16.0 / 9.0)   # a neighbour
+    assert second.factors_at(80.0)[0] == 1.0 and second.factors_at(None)[0] == 1.0
+    drive_pass(second, rough)
+    assert second.outside[0] == 0                   # the patch's errors now lie inside their 3 sigma
+    third = second.continued()
+    drive_pass(third, lambda s: 0.0)
+    assert third.continued().factors_at(41.0)[0] == 1.0
 
 
 def test_a_factor_learned_at_speed_widens_only_the_models_share_of_the_spread():

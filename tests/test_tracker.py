@@ -157,7 +157,10 @@ class StoppingLaw:
 
 def test_a_safety_stop_brakes_along_the_route_at_the_robots_limit():
     """A law's stop is a manoeuvre: the speed falls by decel * dt per period and the turn rate keeps
-    steering towards the route (FL at the braking speed), until the robot stands; then it is stopped."""
+    steering towards the route (FL's curvature at the braking speed, within BRAKE_CURVATURE_PER_M: FL's
+    turn rate grows like 1 / v and would spin a slow robot in place), until the robot stands; then it
+    is stopped."""
+    from services.controller.tracker import BRAKE_CURVATURE_PER_M
     limits = TrackerLimits(v_max_mps=1.0, w_max_radps=1.0, decel_mps2=2.0)
     tr = PathTracker(PATH, StoppingLaw(at_s=1.05), limits, speed_mps=1.0, period_s=0.1)
     assert tr.step(1.0, loc(1.0, x=1.0, y=0.0)).v_mps == pytest.approx(1.0)
@@ -167,10 +170,37 @@ def test_a_safety_stop_brakes_along_the_route_at_the_robots_limit():
         states.append(d.state)
         speeds.append(d.v_mps)
         if d.state == "stopping":   # left of the route: steering right, as FL at that speed would
-            assert d.w_radps == pytest.approx(fl_angular_rate(d.v_mps, 0.05, 0.0, 0.0, FLGains())) and d.w_radps < 0
+            c = max(-BRAKE_CURVATURE_PER_M, fl_angular_rate(d.v_mps, 0.05, 0.0, 0.0, FLGains()) / d.v_mps)
+            assert d.w_radps == pytest.approx(c * d.v_mps) and d.w_radps < 0
             assert "braking along the route" in d.reason and "uncertainty" in d.reason
     assert states == ["stopping"] * 4 + ["stopped"] * 4
     assert speeds[:4] == pytest.approx([0.8, 0.6, 0.4, 0.2]) and speeds[4:] == [0.0] * 4
+
+
+def test_a_lagging_ackermann_keeps_steering_along_the_route_until_its_drive_has_stopped():
+    """A 0.5 s drive lag: the command reaches 0 in two periods, the robot rolls on for a second. The
+    stop keeps steering (towards the route, by a curvature within the steering limit) until the lag model
+    says the drive has stopped, commanding an Ackermann a creep so that its wheels can still steer
+    (eq. 5.27 needs a speed); only then is it stopped."""
+    from services.controller.actuator import ActuatorLag
+    from services.controller.tracker import CREEP_MPS, REST_MPS
+    lag = ActuatorLag(0.5, 0.0, 0.1)
+    limits = TrackerLimits(v_max_mps=1.0, w_max_radps=1.0, max_curvature=0.3, decel_mps2=5.0)
+    tr = PathTracker(PATH, StoppingLaw(at_s=1.05), limits, speed_mps=1.0, period_s=0.1, lag=lag)
+    sent = {k: (1.0, 0.0) for k in range(10)}
+    decisions = []
+    for k in range(10, 40):
+        d = tr.step(0.1 * k, loc(0.1 * k, x=0.1 * k, y=0.05), tick=k, command_at=sent.get)
+        sent[k] = (d.v_mps, d.w_radps)
+        decisions.append(d)
+    stopping = [d for d in decisions if d.state == "stopping"]
+    drive = [lag.state_before(k, sent.get)[0] for k in range(10, 41)]
+    first_zero = next(i for i, d in enumerate(decisions) if d.state == "stopped")
+    assert len(stopping) > 5                                     # far beyond the two periods of the command ramp
+    assert all(d.v_mps >= CREEP_MPS and d.w_radps < 0 for d in stopping)   # left of the route: steering right
+    assert all(abs(d.w_radps) <= 0.3 * d.v_mps + 1e-12 for d in stopping)  # within the steering limit
+    assert drive[first_zero] <= REST_MPS < drive[first_zero - 1]
+    assert all(d.state == "stopped" and d.v_mps == 0.0 for d in decisions[first_zero:])
 
 
 def test_a_safety_stop_without_an_estimate_stops_at_once():

@@ -33,6 +33,14 @@ for it, so a corner's surprise does not slow the straight that follows for the r
 With exchangeable errors about 1 / (WINDOW + 1) of the predictions leave their widened 3-sigma
 region. A new route starts from the teach pass's factors (identification.horizon_factors), kept as a
 floor until a step has seen WINDOW predictions; a later trial starts from the last one's window.
+
+The errors of a place repeat (a rough patch, a slope: the premise of learning from experience), and a
+recent window forgets them by the time the robot is back: a trial that ended on a calm stretch would
+enter the next trial's rough patch, at a speed the calm window allows, with its spread unwidened. So
+each need is also kept by the place the prediction was made at (PLACE_BIN_M bins of the route's
+distance); near a place, kappa_j is at least MARGIN times the largest need of the latest pass over it
+(the neighbouring bins included). The latest pass replaces an earlier one's needs, so a model that has
+learned the place narrows the spread there one trial later.
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
@@ -46,6 +54,7 @@ import numpy as np
 WINDOW = 150             # predictions per horizon step remembered (15 s at 10 Hz)
 MARGIN = 1.1             # on the largest need: the next error is rarely exactly the worst seen
 MAX_SCALE = 400.0        # 20x the modelled standard deviation
+PLACE_BIN_M = 2.0        # route distance per place whose needs are remembered across trials
 
 
 @dataclass(frozen=True)
@@ -59,11 +68,12 @@ class Prediction:
     scale: float              # the factor of step j the spread was predicted with
     loc_sigma_lat_m: float = 0.0      # the localizer's share of the spread (not widened)
     loc_sigma_head_rad: float = 0.0
+    s_m: float = math.nan             # where along the route it was made (NaN: remembered by no place)
 
 
 class SpreadCalibration:
     def __init__(self, horizon: int, scales: np.ndarray | None = None,
-                 recent: list[deque] | None = None):
+                 recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None):
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -72,11 +82,26 @@ class SpreadCalibration:
         self.checked = np.zeros(horizon, dtype=int)
         self.outside = np.zeros(horizon, dtype=int)
         self._pending: dict[int, list[Prediction]] = {}
+        self.places_before = dict(places or {})      # place bin -> needs per step, of the latest pass
+        self.places_now: dict[int, np.ndarray] = {}  # the same, of this trial
 
     def continued(self) -> "SpreadCalibration":
-        """A calibration for the next trial on the same route and model: this one's recent needs, no
-        predictions pending, counts from zero."""
-        return SpreadCalibration(len(self.recent), self.scales, self.recent)
+        """A calibration for the next trial on the same route and model: this one's recent needs and
+        its needs by place (over the earlier passes' where it did not pass), no predictions pending,
+        counts from zero."""
+        return SpreadCalibration(len(self.recent), self.scales, self.recent,
+                                 {**self.places_before, **self.places_now})
+
+    def factors_at(self, s_m: float | None) -> np.ndarray:
+        """kappa_j for a prediction made at route distance `s_m` (None: the recent window's alone)."""
+        if s_m is None or not math.isfinite(s_m) or not self.places_before:
+            return self.scales.copy()
+        b = math.floor(s_m / PLACE_BIN_M)
+        near = [self.places_before[i] for i in (b - 1, b, b + 1) if i in self.places_before]
+        if not near:
+            return self.scales.copy()
+        worst = np.max(near, axis=0)
+        return np.minimum(MAX_SCALE, np.maximum(self.scales, np.where(worst > 1.0, MARGIN * worst, 1.0)))
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:
         """The law's predictions of step k made at `tick`: prediction j is for the estimate of tick + j."""
@@ -98,7 +123,15 @@ class SpreadCalibration:
             need = max(_need(d, var_lat_m2, p.loc_sigma_lat_m, p.sigma_lat_m, p.scale),
                        _need(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale))
             out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
+            self._remember(p, need)
         return out
+
+    def _remember(self, p: Prediction, need: float) -> None:
+        j = p.step - 1
+        if not math.isfinite(p.s_m) or j >= len(self.scales):
+            return
+        needs = self.places_now.setdefault(math.floor(p.s_m / PLACE_BIN_M), np.ones(len(self.scales)))
+        needs[j] = max(needs[j], need)
 
     def _update(self, j: int, z: float, need: float) -> float:
         if j >= len(self.scales):
@@ -116,14 +149,19 @@ class SpreadCalibration:
         floor = self.floor[j] if len(window) < WINDOW else 1.0
         return float(min(MAX_SCALE, max(1.0, floor, seen)))
 
-    def spread_factors(self) -> tuple[float, ...]:
-        """sqrt(kappa_j): what each step's predicted standard deviations are multiplied by."""
-        return tuple(float(x) for x in np.sqrt(self.scales))
+    def spread_factors(self, s_m: float | None = None) -> tuple[float, ...]:
+        """sqrt(kappa_j): what each step's predicted standard deviations are multiplied by, at route
+        distance `s_m`."""
+        return tuple(float(x) for x in np.sqrt(self.factors_at(s_m)))
 
 
 def _need(err: float, var_estimate: float, sigma_loc: float, sigma: float, scale: float) -> float:
     """The factor on the model's share of the variance that puts `err` on the 3-sigma boundary (at least
     1); `sigma` was predicted with that share times `scale`."""
     loc2 = min(sigma_loc * sigma_loc, sigma * sigma)
-    var_model = (sigma * sigma - loc2) / max(scale, 1e-9)
-    return max(1.0, (err * err / 9.0 - var_estimate - loc2) / max(var_model, 1e-18))
+    return max(1.0, (err * err / 9.0 - var_estimate - loc2) / max(_model_share(sigma_loc, sigma, scale), 1e-18))
+
+
+def _model_share(sigma_loc: float, sigma: float, scale: float) -> float:
+    """The model's share of a predicted variance before it was widened by `scale`."""
+    return (sigma * sigma - min(sigma_loc * sigma_loc, sigma * sigma)) / max(scale, 1e-9)

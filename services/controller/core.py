@@ -21,6 +21,8 @@ class ControllerCore:
         self.builder = ExperienceBuilder(path, period_s, lag=tracker.lag)
         self.calibration = calibration or SpreadCalibration(horizon=0)
         self.period_s = period_s
+        self.s_m: float | None = None         # route distance of the newest estimate
+        self.kappa = self.calibration.factors_at(None)   # the calibration's factors of the latest step
 
     def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, Observation | None]:
         """One control step at robot tick `tick`: the command to apply now, and the disturbance
@@ -31,13 +33,16 @@ class ControllerCore:
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
         if loc is not None and loc.has_pose:
             self._realize(loc)
-        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.calibration.spread_factors())
+        self.kappa = self.calibration.factors_at(self.s_m)
+        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at,
+                                     tuple(float(f) for f in np.sqrt(self.kappa)))
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         return decision, obs
 
     def _realize(self, loc: LocState) -> None:
         """Check the predictions made for this estimate's capture tick against it."""
         pose, dist, lateral, heading = self.tracker.route_errors(loc)
+        self.s_m = dist
         cov = self.tracker.route_cov(loc)
         th = float(self.path.tangent_at(dist))
         n = np.array([-math.sin(th), math.cos(th)])
@@ -50,7 +55,7 @@ class ControllerCore:
         unc = law.uncertainty if law is not None else None
         if unc is None or not unc.horizon_sigma_lat_m or law.predicted is None or d.state != "tracking":
             return
-        scales, hint, predictions = self.calibration.scales, d.vertex, []
+        scales, hint, predictions = self.kappa, d.vertex, []
         for j, x in enumerate(np.asarray(law.predicted)):
             pr = self.path.project(x, hint=hint)
             hint = pr.vertex
@@ -58,5 +63,5 @@ class ControllerCore:
                 if j < len(unc.horizon_loc_sigma_lat_m) else (0.0, 0.0)
             predictions.append(Prediction(j + 1, pr.lateral_m, pr.heading_rad, unc.horizon_sigma_lat_m[j],
                                           unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0,
-                                          *loc))
+                                          *loc, s_m=d.distance_m))
         self.calibration.predict(tick, predictions)

@@ -24,6 +24,9 @@ from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 
 LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
 STOP_DECEL_MPS2 = 0.4    # the gentle deceleration into the end of the route
+REST_MPS = 0.03          # a braking robot whose drive the lag model puts below this has stopped
+CREEP_MPS = 0.01         # what a braking Ackermann is commanded while it rolls: its steering needs a speed
+BRAKE_CURVATURE_PER_M = 0.5   # the most a stop steers beyond the route's own curvature
 
 # what a law may fail with numerically (ArithmeticError: FloatingPointError, OverflowError, ZeroDivisionError)
 NUMERICAL_FAILURES = (ArithmeticError, np.linalg.LinAlgError)
@@ -134,7 +137,7 @@ class PathTracker:
         if self.finished:
             return stop("finished", "end of route reached")
         if self.halted:
-            return self._brake(last, age, loc) or stop("stopped", self.halted)
+            return self._brake(last, age, loc, self._drive_speed(tick, command_at)) or stop("stopped", self.halted)
         if last is None:
             return stop("waiting", f"no localization yet ({loc.status if loc else 'nothing received'})")
         if loc is not None and loc.status == "lost":
@@ -179,7 +182,7 @@ class PathTracker:
         res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
-            return self._brake(last, age, loc) or stop("stopped", res.stop_reason)
+            return self._brake(last, age, loc, self._drive_speed(tick, command_at)) or stop("stopped", res.stop_reason)
         if res.v_mps is not None and math.isfinite(res.v_mps):
             v = max(0.0, min(res.v_mps, self.limits.v_max_mps))
         w_limit = self.limits.w_limit(v)
@@ -187,18 +190,37 @@ class PathTracker:
         self._last_cmd = (v, w)
         return Decision(v, w, "tracking", reason, vertex, dist, lat, head, age, res)
 
-    def _brake(self, last: LocState | None, age: float, loc: LocState | None) -> Decision | None:
+    def _drive_speed(self, tick: int | None, command_at: Callable[[int], tuple[float, float] | None] | None) -> float:
+        """The speed the drive still has by the lag model (0 without one, or without a command history:
+        the drive then follows the command within the period)."""
+        if self.lag.active and tick is not None and command_at is not None:
+            return self.lag.state_before(tick, command_at)[0]
+        return 0.0
+
+    def _brake(self, last: LocState | None, age: float, loc: LocState | None, v_drive: float) -> Decision | None:
         """A law's safety stop as a manoeuvre that keeps the robot inside: brake at the robot's limit while
-        steering along the route (feedback linearization at the braking speed), not v = w = 0, which drops
-        the counter-steer and lets the robot coast off. None once at rest, or without a usable estimate
+        steering along the route, not v = w = 0, which drops the counter-steer and lets the robot coast
+        off. The steering holds until the drive has stopped (`v_drive`, by the lag model), not the
+        command: a heavy robot's drive lags its command by a second. It steers a curvature (feedback
+        linearization at the rolling speed, within BRAKE_CURVATURE_PER_M of the route's), turned into a
+        turn rate at that speed: FL's turn rate grows like 1 / v and would spin a slow skid-steer in
+        place. An Ackermann robot steers by the ratio w / v of its command (eq. 5.27), so while it rolls
+        it is commanded a creep with that curvature. None once at rest, or without a usable estimate
         (then there is nothing to steer by: plain stop)."""
         v = max(0.0, self._last_cmd[0] - self.limits.decel_mps2 * self.period_s)
-        if v <= 1e-6 or last is None or age > self.loc_timeout_s or (loc is not None and loc.status == "lost"):
+        rolling = max(v, v_drive)
+        if rolling <= REST_MPS or last is None or age > self.loc_timeout_s or (loc is not None and loc.status == "lost"):
             return None
         _, dist, lat, head = self.route_errors(last)
         kappa = float(np.interp(dist, self.path.s, self.path.curvature))
-        w_limit = self.limits.w_limit(v)
-        w = max(-w_limit, min(w_limit, fl_angular_rate(v, lat, head, kappa, self._fallback.gains)))
+        c = fl_angular_rate(rolling, lat, head, kappa, self._fallback.gains) / rolling
+        c = max(kappa - BRAKE_CURVATURE_PER_M, min(kappa + BRAKE_CURVATURE_PER_M, c))
+        c = max(-self.limits.max_curvature, min(self.limits.max_curvature, c))
+        if math.isfinite(self.limits.max_curvature):
+            v = max(v, CREEP_MPS)
+            w = c * v
+        else:
+            w = max(-self.limits.w_max_radps, min(self.limits.w_max_radps, c * rolling))
         self._last_cmd = (v, w)
         return Decision(v, w, "stopping", f"{self.halted}: braking along the route", last.vertex, dist, lat, head, age)
 
