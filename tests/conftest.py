@@ -2,11 +2,17 @@
 from __future__ import annotations
 
 import io
+import os
 import signal
 import time
 from pathlib import Path
 
-import pytest
+# One BLAS thread per process, set before numpy loads (children inherit it): the suite runs service
+# processes beside the test process on 2 cores, and OpenBLAS's spinning worker threads, oversubscribed,
+# made one GP test take 742 s instead of 11 (124 s against 10 s with two busy loops beside it).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import pytest  # noqa: E402
 
 from common.bus import open_session
 from common.scenario import parse_scenario
