@@ -34,10 +34,14 @@ class ControllerCore:
         if loc is not None and loc.has_pose:
             self._realize(loc)
         self.kappa = self.calibration.factors_at(self.s_m)
-        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at,
-                                     tuple(float(f) for f in np.sqrt(self.kappa)))
+        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors)
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         return decision, obs
+
+    @property
+    def spread_factors(self) -> tuple[float, ...]:
+        """sqrt(kappa_j) of the latest step: what its predicted standard deviations were multiplied by."""
+        return tuple(float(f) for f in np.sqrt(self.kappa))
 
     def _realize(self, loc: LocState) -> None:
         """Check the predictions made for this estimate's capture tick against it."""
