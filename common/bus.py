@@ -21,6 +21,7 @@ import zenoh
 
 from common import keys
 from common.codec import Decoder, Message, decode, encode
+from common.messages import LARGEST_MESSAGE_BYTES
 
 M = TypeVar("M")
 log = logging.getLogger(__name__)
@@ -34,8 +35,18 @@ _zenoh_log_started = False
 
 
 def zenoh_config(mode: str, *, connect: Iterable[str] = (), listen: Iterable[str] = (),
-                 connect_timeout_ms: int = -1) -> zenoh.Config:
-    conf = zenoh.Config()
+                 connect_timeout_ms: int = -1, base: str | dict | None = None) -> zenoh.Config:
+    """A session's config: `base` (a Zenoh JSON5 config file, or the same as a dict: TLS, access
+    control, limits) with the mode and endpoints set on top of it."""
+    if isinstance(base, dict):
+        conf = zenoh.Config.from_json5(json.dumps(base))
+    elif base:
+        conf = zenoh.Config.from_file(base)
+    else:
+        conf = zenoh.Config()
+        # Zenoh's default reassembles fragments up to 1 GiB: a flood of huge payloads would take that
+        # much memory before the codec's size check ever sees them
+        conf.insert_json5("transport/link/rx/max_message_size", json.dumps(LARGEST_MESSAGE_BYTES))
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     listen = list(listen)
@@ -57,14 +68,15 @@ def zenoh_error(exc: BaseException | str) -> str:
 
 
 def open_session(endpoint: str = DEFAULT_ENDPOINT, mode: str = "client", stop: threading.Event | None = None,
-                 timeout_s: float | None = None) -> zenoh.Session:
+                 timeout_s: float | None = None, zenoh_conf: str | dict | None = None) -> zenoh.Session:
     """Connect to the router, waiting for it if it is still starting.
 
     The wait happens in 1 s attempts so that SIGTERM/Ctrl-C (and `stop`) are honoured meanwhile: a
     single open() with an infinite timeout would block signal handling forever. A router started a
     moment ago is the normal case, so waiting is logged at INFO and only becomes a warning after
-    SLOW_CONNECT_WARN_S. Raises ValueError for a malformed endpoint, ConnectionError after `timeout_s`
-    (None: keep trying) or when `stop` is set.
+    SLOW_CONNECT_WARN_S. `zenoh_conf` is a Zenoh JSON5 config file or dict (TLS certificates for a
+    secured deployment). Raises ValueError for a malformed endpoint or config, ConnectionError after
+    `timeout_s` (None: keep trying) or when `stop` is set.
     """
     global _zenoh_log_started
     if not _zenoh_log_started:
@@ -73,11 +85,14 @@ def open_session(endpoint: str = DEFAULT_ENDPOINT, mode: str = "client", stop: t
     listen = ["tcp/127.0.0.1:0"] if mode == "peer" else []
 
     def config() -> zenoh.Config:
-        return zenoh_config(mode, connect=[endpoint], listen=listen, connect_timeout_ms=1000)
+        return zenoh_config(mode, connect=[endpoint], listen=listen, connect_timeout_ms=1000,
+                            base=zenoh_conf)
     try:
-        config()   # a malformed endpoint never starts working: say so at once
+        config()   # a malformed endpoint or config never starts working: say so at once
     except zenoh.ZError as exc:
-        raise ValueError(f"invalid Zenoh endpoint {endpoint!r}: {zenoh_error(exc)}") from None
+        what = "Zenoh config" + (f" {zenoh_conf}" if isinstance(zenoh_conf, str) else "") if zenoh_conf \
+            else f"Zenoh endpoint {endpoint!r}"
+        raise ValueError(f"invalid {what}: {zenoh_error(exc)}") from None
     t0 = time.monotonic()
     last_error, informed, warned = "", False, False
     while True:
@@ -127,12 +142,12 @@ class Node:
     """One Zenoh client session with typed publish/subscribe/query helpers and a liveliness token."""
 
     def __init__(self, service: str, robot: str, endpoint: str = DEFAULT_ENDPOINT, logger: logging.Logger | None = None,
-                 stop: threading.Event | None = None):
+                 stop: threading.Event | None = None, zenoh_conf: str | dict | None = None):
         self.service = service
         self.robot = robot
         self.log = logger or logging.getLogger(service)
         self.decoder = Decoder(self.log)
-        self.session = open_session(endpoint, stop=stop)
+        self.session = open_session(endpoint, stop=stop, zenoh_conf=zenoh_conf)
         self._decls: list[Any] = []
         self._pubs: dict[str, Any] = {}
         self._token = None

@@ -538,3 +538,7 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     ExperienceWindow, HyperDim, HyperMsg, PathStats, StoreStats, SpeedSchedule, ScheduleUpdate,
     CorridorUpdate,
 )
+
+# Zenoh reassembles a fragmented message up to this size and drops larger ones before they take memory
+# (transport/link/rx/max_message_size): the largest message the codec would accept, plus framing
+LARGEST_MESSAGE_BYTES = max(cls.MAX_BYTES for cls in (*ALL_MESSAGES, StereoFrame, NominalModel)) + 64 * 1024

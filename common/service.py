@@ -119,6 +119,8 @@ def service_main(name: str, config_cls: type[C], build: Callable[[C, Node], Serv
     parser = argparse.ArgumentParser(prog=f"python -m services.{name}", description=f"lbc {name} service")
     parser.add_argument("--config", required=True, help="service configuration (TOML)")
     parser.add_argument("--connect", default=DEFAULT_ENDPOINT, help="Zenoh router endpoint")
+    parser.add_argument("--zenoh-config", default=None, metavar="FILE",
+                        help="Zenoh JSON5 config for the session (TLS certificates of a secured deployment)")
     add_log_level_argument(parser)
     args = parser.parse_args(argv)
     die_with_parent()
@@ -131,11 +133,11 @@ def service_main(name: str, config_cls: type[C], build: Callable[[C, Node], Serv
     stop = threading.Event()
     install_stop_handlers(stop)
     try:
-        node = Node(name, robot_of(cfg), args.connect, log, stop=stop)
+        node = Node(name, robot_of(cfg), args.connect, log, stop=stop, zenoh_conf=args.zenoh_config)
     except ConnectionError as exc:
         log.info("%s stopped before connecting: %s", name, exc)
         return 0
-    except ValueError as exc:   # a malformed --connect endpoint
+    except ValueError as exc:   # a malformed --connect endpoint or --zenoh-config
         log.error("cannot connect: %s", exc)
         return 2
     service = None

@@ -30,12 +30,34 @@ def _version() -> str:
         return "unknown"
 
 
+def _operator_session(args) -> tuple[str | None, str | dict | None]:
+    """Where the runner connects and with which Zenoh config: --connect/--zenoh-config, or the
+    operator's endpoint and certificate on a manifest's host."""
+    if args.manifest is None:
+        if args.host is not None:
+            raise ConfigError("--host needs --manifest")
+        return args.connect, args.zenoh_config
+    from common.scenario import load_scenario
+    from deploy import access
+    from deploy.certs import OPERATOR
+    from deploy.manifest import load_manifest
+    if args.host is None or args.connect is not None:
+        raise ConfigError("--manifest needs --host NAME (and replaces --connect)")
+    m = load_manifest(args.manifest)
+    ours, theirs = load_scenario(args.scenario), m.load_scenario()
+    if ours.robot.name != theirs.robot.name:
+        raise ConfigError(f"{args.scenario} drives robot {ours.robot.name!r}, the deployment runs {theirs.robot.name!r}")
+    conf = access.session_config(m, args.host, OPERATOR) if args.zenoh_config is None else args.zenoh_config
+    return m.host(args.host).listen, conf
+
+
 def _experiment(args) -> int:
     from deploy.experiment import ExperimentError, run_experiment
     signal.signal(signal.SIGTERM, _raise_interrupt)  # SIGTERM cleans up exactly like Ctrl-C
     try:
-        run_experiment(args.scenario, args.out, connect=args.connect, log_level=args.log_level,
-                       overwrite=args.overwrite, connect_timeout_s=args.connect_timeout)
+        connect, zenoh_conf = _operator_session(args)
+        run_experiment(args.scenario, args.out, connect=connect, log_level=args.log_level,
+                       overwrite=args.overwrite, connect_timeout_s=args.connect_timeout, zenoh_conf=zenoh_conf)
     except (ConfigError, ExperimentError) as exc:
         _say("experiment", str(exc))
         return 2 if isinstance(exc, ConfigError) else 1
@@ -47,67 +69,74 @@ def _experiment(args) -> int:
 
 
 def _launch(args) -> int:
-    """Start router and services for a scenario and keep them up until Ctrl-C."""
+    """Start router and services (a scenario on loopback, or one host of a manifest) until Ctrl-C."""
     from pathlib import Path
 
+    from common.bus import install_stop_handlers
     from common.scenario import load_scenario
-    from deploy.configs import service_configs, write_service_configs
-    from deploy.experiment import check_supported
-    from deploy.launcher import port_in_use
+    from deploy.host import plan_host, plan_local, serve
+    from deploy.manifest import load_manifest
+    if (args.scenario is None) == (args.manifest is None) or (args.manifest is None) != (args.host is None):
+        _say("launch", "give a SCENARIO, or --manifest FILE with --host NAME")
+        return 2
+    base = Path(args.dir)
     try:
-        sc = load_scenario(args.scenario)
-        check_supported(sc)
+        if args.manifest:
+            m = load_manifest(args.manifest)
+            plan = plan_host(m, args.host, base)
+            hint = (f"Run: lbc experiment run {m.scenario} --out DIR --manifest {args.manifest} --host {args.host}   "
+                    if "controller" in m.host(args.host).services else "")
+        else:
+            plan = plan_local(load_scenario(args.scenario), args.port, base)
+            hint = f"Run: lbc experiment run {args.scenario} --out DIR --connect {plan.listen}   "
     except ConfigError as exc:
         _say("launch", str(exc))
         return 2
-    if port_in_use(args.port):
-        _say("launch", f"port {args.port} on 127.0.0.1 is already in use (another router or `lbc launch`?); "
-                       "stop it or choose another with --port")
-        return 1
-    base = Path(args.dir)
-    paths = write_service_configs(service_configs(sc, (base / "data").resolve()), base / "config")
-    return _keep_deployment_up(args, sc, paths, base)
-
-
-def _keep_deployment_up(args, sc, paths: dict, base) -> int:
-    """Say that the deployment is up only once the router listens and every service is alive."""
-    from common import keys
-    from common.bus import install_stop_handlers, open_session
-    from deploy.experiment import FLEET_SERVICES, services_of
-    from deploy.launcher import Launcher, LaunchError
-    endpoint = f"tcp/127.0.0.1:{args.port}"
-    services = services_of(sc)
-    expected = {s: keys.alive(keys.STORE_ROBOT if s in FLEET_SERVICES else sc.robot.name, s) for s in services}
     stop = threading.Event()
     install_stop_handlers(stop)
-    with Launcher(endpoint, base / "logs") as launcher:
-        try:
-            launcher.start_router(args.port)
-            launcher.wait_router()
-            for s in services:
-                launcher.start_service(s, paths[s], args.log_level)
-            session = open_session(endpoint, stop=stop, timeout_s=15.0)
-            try:
-                up = launcher.wait_alive(session, expected, stop=stop)
-            finally:
-                session.close()
-        except (LaunchError, ConnectionError) as exc:
-            if stop.is_set():
-                return 130
-            _say("launch", f"{exc}\n(logs in {base / 'logs'})")
-            return 1
-        if not up:
-            return 130
-        print(f"router on {endpoint}; services {', '.join(services)} up; logs in {base / 'logs'}. "
-              f"Run: lbc experiment run {args.scenario} --out DIR --connect {endpoint}   (Ctrl-C stops)",
-              file=sys.stderr)
-        while not stop.wait(0.5):
-            dead = launcher.exited()
-            if dead:
-                _say("launch", f"{dead[0].name} exited ({dead[0].proc.returncode}):\n{dead[0].tail()}")
-                return 1
-    _say("launch", "stopped")
+    return serve(plan, args.log_level, stop, lambda text: _say("launch", text), hint)
+
+
+def _certs(args) -> int:
+    from deploy.certs import make_certs
+    from deploy.manifest import load_manifest
+    try:
+        m = load_manifest(args.manifest)
+    except ConfigError as exc:
+        _say("deploy certs", str(exc))
+        return 2
+    written = make_certs(m)
+    print(f"CA {m.certs_dir}/ca.pem (its key ca.key stays here); {len(written)} certificates for hosts "
+          f"{', '.join(m.hosts)}: copy ca.pem and <host>/ to each host", file=sys.stderr)
     return 0
+
+
+def _check(args) -> int:
+    import json
+
+    from deploy.access_check import check_access
+    from deploy.manifest import load_manifest
+    try:
+        m = load_manifest(args.manifest)
+        m.host(args.host)
+        sc = m.load_scenario()
+    except ConfigError as exc:
+        _say("deploy check", str(exc))
+        return 2
+    if m.security != "mtls":
+        _say("deploy check", f"manifest {m.name} has security = {m.security!r}: there is no access control to check")
+        return 1
+    try:
+        result = check_access(m, args.host, sc.robot.name, sc.path_id)
+    except ConnectionError as exc:
+        _say("deploy check", f"{exc}; is host {args.host} launched (lbc launch --manifest ... --host {args.host})?")
+        return 1
+    _say("deploy check", ("access control holds" if result.holds else "ACCESS CONTROL DOES NOT HOLD") +
+         f" on host {args.host}: {result.rogue_puts_sent} puts and {result.rogue_control_requests} control requests "
+         f"by certificates not entitled to them, {result.rogue_puts_delivered + result.rogue_control_replies} "
+         f"got through; no certificate: {'refused' if result.unauthenticated_connect_refused else 'ACCEPTED'}")
+    print(json.dumps(result.to_dict()))
+    return 0 if result.holds else 1
 
 
 def _bench(args) -> int:
@@ -140,18 +169,38 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("scenario")
     run.add_argument("--out", required=True, help="output directory (summary.json, report.html, run.mcap)")
     run.add_argument("--connect", default=None, help="use a running deployment at this Zenoh endpoint")
+    run.add_argument("--zenoh-config", default=None, metavar="FILE",
+                     help="Zenoh JSON5 config of the runner's session (e.g. its TLS certificate)")
+    run.add_argument("--manifest", default=None, help="run against a deployment manifest's host (with --host)")
+    run.add_argument("--host", default=None, help="the manifest host to connect to, with its operator certificate")
     run.add_argument("--connect-timeout", type=float, default=30.0, metavar="S",
                      help="how long to wait for the router (default 30 s)")
     run.add_argument("--overwrite", action="store_true", help="replace an earlier run in the output directory")
     add_log_level_argument(run)
     run.set_defaults(func=_experiment)
 
-    launch = sub.add_parser("launch", help="start router and services for a scenario until Ctrl-C")
-    launch.add_argument("scenario")
-    launch.add_argument("--port", type=int, default=7447)
+    launch = sub.add_parser("launch", help="start router and services (a scenario, or one host of a manifest) "
+                                           "until Ctrl-C")
+    launch.add_argument("scenario", nargs="?", default=None, help="one-host deployment on loopback")
+    launch.add_argument("--manifest", default=None, help="deployment manifest (TOML): hosts, routers, services")
+    launch.add_argument("--host", default=None, help="which host of the manifest this is")
+    launch.add_argument("--port", type=int, default=7447, help="loopback port of a one-host deployment")
     launch.add_argument("--dir", default="runs/deployment", help="configs, logs and data of the deployment")
     add_log_level_argument(launch)
     launch.set_defaults(func=_launch)
+
+    deploy_parser = sub.add_parser("deploy", help="deployment tools")
+    deploy_parser.set_defaults(func=_help_of(deploy_parser))
+    deploy_sub = deploy_parser.add_subparsers(dest="sub", metavar="SUBCOMMAND")
+    certs = deploy_sub.add_parser(
+        "certs", help="make the CA and every host's certificates for a manifest (mutual TLS, access control)")
+    certs.add_argument("--manifest", required=True)
+    certs.set_defaults(func=_certs)
+    check = deploy_sub.add_parser("check", help="prove on a running deployment that its access control holds "
+                                                "(from this host, with the certificates present here)")
+    check.add_argument("--manifest", required=True)
+    check.add_argument("--host", required=True, help="the host this runs on (its router is probed)")
+    check.set_defaults(func=_check)
 
     store_cli.add_parser(sub)
     sched_cli.add_parser(sub)

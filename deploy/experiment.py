@@ -477,9 +477,10 @@ def _start_deployment(sc: Scenario, out: FsPath, log_level: str, progress: Progr
     return launcher, endpoint
 
 
-def _connect(endpoint: str, launcher: Launcher | None, timeout_s: float) -> zenoh.Session:
+def _connect(endpoint: str, launcher: Launcher | None, timeout_s: float,
+             zenoh_conf: str | dict | None = None) -> zenoh.Session:
     try:
-        return open_session(endpoint, timeout_s=timeout_s)
+        return open_session(endpoint, timeout_s=timeout_s, zenoh_conf=zenoh_conf)
     except ValueError as exc:
         raise ExperimentError(f"--connect: {exc}") from None
     except ConnectionError as exc:
@@ -539,8 +540,9 @@ def _run_trials(sc: Scenario, exp: Experiment, out: FsPath, summary: dict, recor
 
 def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: str | None = None,
                    progress_stream: TextIO = sys.stderr, log_level: str = "INFO", overwrite: bool = False,
-                   connect_timeout_s: float = 30.0) -> dict:
-    """Run a whole experiment; returns the summary (also written to out_dir/summary.json)."""
+                   connect_timeout_s: float = 30.0, zenoh_conf: str | dict | None = None) -> dict:
+    """Run a whole experiment; returns the summary (also written to out_dir/summary.json). With
+    `connect`, against a running deployment; `zenoh_conf` then holds the runner's certificate."""
     t_start = time.monotonic()
     sc = load_scenario(scenario_path)
     check_supported(sc)
@@ -552,7 +554,7 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
     session = recorder = exp = None
     series, records, disturbance = [], [], []
     try:
-        session = _connect(endpoint, launcher, connect_timeout_s)
+        session = _connect(endpoint, launcher, connect_timeout_s, zenoh_conf)
         recorder = McapRecorder(out / "run.mcap", session, stereo_every=sc.localization.record_stereo_every)
         exp = Experiment(sc, session, recorder, progress, launcher)
         exp.wait_ready()

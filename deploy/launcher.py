@@ -46,6 +46,8 @@ class Child:
     proc: subprocess.Popen
     log_path: Path
     log_offset: int = 0     # where this child's output starts: log files are appended to across runs
+    args: tuple[str, ...] = ()
+    started_s: float = 0.0  # monotonic
 
     def output(self) -> str:
         try:
@@ -77,17 +79,28 @@ class Launcher:
             offset = fh.tell()
             proc = subprocess.Popen([sys.executable, *args], stdout=fh, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, env=env)
-        child = Child(name, proc, log_path, offset)
+        child = Child(name, proc, log_path, offset, tuple(args), time.monotonic())
         self.children.append(child)
         log.debug("started %s (pid %d): %s", name, proc.pid, " ".join(args))
         return child
 
-    def start_router(self, port: int) -> Child:
-        return self._spawn("router", ["-m", "deploy.router", "--port", str(port)])
+    def start_router(self, port: int, listen: str | None = None, zenoh_conf: str | Path | None = None) -> Child:
+        args = ["-m", "deploy.router", "--port", str(port)]
+        args += ["--listen", listen] if listen else []
+        args += ["--zenoh-config", str(zenoh_conf)] if zenoh_conf else []
+        return self._spawn("router", args)
 
-    def start_service(self, service: str, config_path: str | Path, log_level: str = "INFO") -> Child:
-        return self._spawn(service, ["-m", f"services.{service}", "--config", str(config_path),
-                                     "--connect", self.endpoint, "--log-level", log_level])
+    def start_service(self, service: str, config_path: str | Path, log_level: str = "INFO",
+                      zenoh_conf: str | Path | None = None) -> Child:
+        args = ["-m", f"services.{service}", "--config", str(config_path), "--connect", self.endpoint,
+                "--log-level", log_level]
+        args += ["--zenoh-config", str(zenoh_conf)] if zenoh_conf else []
+        return self._spawn(service, args)
+
+    def restart(self, child: Child) -> Child:
+        """Start a child that exited again, with the same arguments, appending to its log."""
+        self.children.remove(child)
+        return self._spawn(child.name, list(child.args))
 
     def wait_router(self, timeout_s: float = 15.0) -> None:
         """Return once the router listens; raise LaunchError if it exits first (port taken, bad

@@ -1,5 +1,7 @@
-"""The local Zenoh router: a Python session in `router` mode listening on tcp/127.0.0.1:<port>,
-multicast scouting off (no zenohd is needed). Runs until SIGTERM/SIGINT, then closes cleanly."""
+"""The Zenoh router: a Python session in `router` mode listening on tcp/127.0.0.1:<port> (or any
+endpoint, e.g. tls/10.0.0.1:7447 with a JSON5 config holding certificates, links to other routers and
+access control), multicast scouting off (no zenohd is needed). Runs until SIGTERM/SIGINT, then
+closes cleanly."""
 from __future__ import annotations
 
 import argparse
@@ -22,15 +24,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def open_router(port: int, host: str = "127.0.0.1") -> zenoh.Session:
+def open_router(port: int, host: str = "127.0.0.1", listen: str | None = None,
+                zenoh_conf: str | None = None) -> zenoh.Session:
     zenoh.init_log_from_env_or("error")
-    return zenoh.open(zenoh_config("router", listen=[f"tcp/{host}:{port}"]))
+    return zenoh.open(zenoh_config("router", listen=[listen or f"tcp/{host}:{port}"], base=zenoh_conf))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The router's options, shared by `python -m deploy.router` and `lbc router`."""
     parser.add_argument("--port", type=int, default=7447, help="TCP port to listen on (default 7447)")
     parser.add_argument("--host", default="127.0.0.1", help="interface to listen on (0.0.0.0 for a fleet)")
+    parser.add_argument("--listen", default=None, metavar="ENDPOINT",
+                        help="endpoint to listen on instead of tcp/HOST:PORT, e.g. tls/10.0.0.1:7447")
+    parser.add_argument("--zenoh-config", default=None, metavar="FILE",
+                        help="Zenoh JSON5 config (TLS, links to other routers, access control)")
     add_log_level_argument(parser)
 
 
@@ -40,12 +47,13 @@ def run(args: argparse.Namespace) -> int:
     log = setup_logging("router", args.log_level)
     stop = threading.Event()
     install_stop_handlers(stop)
+    endpoint = args.listen or f"tcp/{args.host}:{args.port}"
     try:
-        session = open_router(args.port, args.host)
+        session = open_router(args.port, args.host, args.listen, args.zenoh_config)
     except zenoh.ZError as exc:
-        log.error("cannot listen on tcp/%s:%d: %s", args.host, args.port, zenoh_error(exc))
+        log.error("cannot listen on %s: %s", endpoint, zenoh_error(exc))
         return 1
-    log.info(READY_LINE + " tcp/%s:%d (zid %s)", args.host, args.port, session.zid())
+    log.info(READY_LINE + " %s (zid %s)", endpoint, session.zid())
     try:
         stop.wait()
     finally:

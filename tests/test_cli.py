@@ -38,8 +38,8 @@ def lbc(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
 class Running:
     """A CLI process whose stderr is read line by line on a thread, so tests can wait for a line."""
 
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([*LBC, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    def __init__(self, *args: str, prefix: tuple[str, ...] = ()):
+        self.proc = subprocess.Popen([*prefix, *LBC, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                      text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)),
                                      preexec_fn=ctrl_c_reaches_child)
         self.lines: list[str] = []

@@ -1,0 +1,141 @@
+"""Two hosts for real (issue 19): a robot host and a learning host, each a network namespace with its
+own stack, joined by a veth pair. Each runs `lbc launch --manifest FILE --host NAME` (its router with
+mutual TLS and access control, its services); the experiment runs on the robot host with the
+operator's certificate. Needs root (ip netns); skipped with the reason otherwise."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from deploy.certs import make_certs
+from deploy.manifest import load_manifest
+from tests.conftest import SHORT_SCENARIO, dump_toml_dict
+from tests.test_cli import ROOT, Running
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+TAG = f"{os.getpid() % 100000}"
+NS = {"robot": f"lbcR{TAG}", "learning": f"lbcL{TAG}"}
+VETH = {"robot": f"lvR{TAG}", "learning": f"lvL{TAG}"}
+SUBNET = f"10.{200 + os.getpid() % 50}.{os.getpid() % 250}"
+ADDR = {"robot": f"{SUBNET}.1", "learning": f"{SUBNET}.2"}
+SCENARIO = dict(SHORT_SCENARIO, name="twohost", controller={"algorithm": "lb-nmpc"},
+                scheduler={"enabled": True})
+
+
+def sh(*cmd: str) -> None:
+    subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=30)
+
+
+def in_ns(host: str) -> tuple[str, ...]:
+    return ("ip", "netns", "exec", NS[host])
+
+
+def make_hosts() -> None:
+    for host in NS:
+        sh("ip", "netns", "add", NS[host])
+        sh(*in_ns(host), "ip", "link", "set", "lo", "up")
+    sh("ip", "link", "add", VETH["robot"], "type", "veth", "peer", "name", VETH["learning"])
+    for host in NS:
+        sh("ip", "link", "set", VETH[host], "netns", NS[host])
+        sh(*in_ns(host), "ip", "addr", "add", f"{ADDR[host]}/24", "dev", VETH[host])
+        sh(*in_ns(host), "ip", "link", "set", VETH[host], "up")
+
+
+def remove_hosts() -> None:
+    for host in NS:
+        subprocess.run(["ip", "netns", "del", NS[host]], capture_output=True, timeout=30)
+
+
+def link(up: bool) -> None:
+    sh(*in_ns("robot"), "ip", "link", "set", VETH["robot"], "up" if up else "down")
+
+
+def write_deployment(base: Path) -> Path:
+    (base / "twohost.toml").write_text(dump_toml_dict(SCENARIO))
+    manifest = base / "deployment.toml"
+    manifest.write_text(f'''name = "twohost"
+scenario = "twohost.toml"
+[hosts.robot]
+listen = "tls/{ADDR['robot']}:7447"
+services = ["bridge", "localizer", "controller"]
+links = ["learning"]
+[hosts.learning]
+listen = "tls/{ADDR['learning']}:7447"
+services = ["gp_store", "scheduler"]
+''')
+    make_certs(load_manifest(manifest))
+    return manifest
+
+
+@pytest.fixture(scope="module")
+def two_hosts(tmp_path_factory):
+    if os.geteuid() != 0:
+        pytest.skip("network namespaces need root")
+    try:
+        make_hosts()
+    except (subprocess.CalledProcessError, FileNotFoundError) as exc:
+        remove_hosts()
+        pytest.skip(f"cannot make network namespaces here: {getattr(exc, 'stderr', exc)}")
+    base = tmp_path_factory.mktemp("twohost")
+    manifest = write_deployment(base)
+    launches = {}
+    try:
+        for host in ("learning", "robot"):
+            launches[host] = Running("launch", "--manifest", str(manifest), "--host", host,
+                                     "--dir", str(base / host), prefix=in_ns(host))
+        for host, launch in launches.items():
+            assert launch.wait_for("router on", 120.0), "".join(filter(None, launch.lines))
+        yield manifest, base, launches
+    finally:
+        for launch in launches.values():
+            if launch.proc.poll() is None:
+                launch.proc.send_signal(signal.SIGINT)
+        for launch in launches.values():
+            try:
+                launch.finish(30.0)
+            except subprocess.TimeoutExpired:
+                launch.kill()
+        remove_hosts()
+
+
+def run_in(host: str, *args: str, timeout: float = 600.0) -> subprocess.CompletedProcess:
+    return subprocess.run([*in_ns(host), sys.executable, *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=timeout, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+
+
+def test_an_experiment_runs_with_store_and_scheduler_on_the_learning_host(two_hosts, tmp_path):
+    manifest, base, _ = two_hosts
+    out = tmp_path / "out"
+    r = run_in("robot", "-m", "deploy.cli", "experiment", "run", str(base / "twohost.toml"), "--out", str(out),
+               "--manifest", str(manifest), "--host", "robot")
+    assert r.returncode == 0, r.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert [t["completed"] for t in summary["trials"]] == [True, True]
+    assert all(t["constraint_violations"] == 0 for t in summary["trials"])
+    # the store on the learning host fitted on the experiences, the scheduler there planned trial 2
+    assert summary["trials"][1]["experiences_fit_used"] > 0 and summary["trials"][1]["schedule_version"] >= 2
+    # the learning host's store file holds them
+    assert (base / "learning" / "data" / "experiences.db").stat().st_size > 0
+
+
+def test_sessions_are_entitled_only_by_their_certificate(two_hosts):
+    """From each host: no certificate is refused; a valid certificate of the wrong role delivers no
+    commands, experiences, acknowledgements, corridor updates or schedules, and gets no answer to a
+    control request; the right certificate does (so the observer is not blind)."""
+    manifest, _, _ = two_hosts
+    for host in ("robot", "learning"):
+        r = run_in(host, "-m", "deploy.cli", "deploy", "check", "--manifest", str(manifest), "--host", host,
+                   timeout=180.0)
+        assert r.returncode == 0 and "access control holds" in r.stderr, r.stderr[-3000:]
+        result = json.loads(r.stdout.strip().splitlines()[-1])
+        assert result["unauthenticated_connect_refused"] is True
+        assert result["rogue_puts_delivered"] == 0, result
+        assert result["rogue_control_replies"] == 0, result
+        assert result["entitled_puts_delivered"] > 0 and result["operator_control_replies"] > 0, result
