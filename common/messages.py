@@ -161,7 +161,7 @@ ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopping", 
 @dataclass(frozen=True, kw_only=True)
 class ControllerStatus(Message):
     """One per control step: what the controller saw, decided and how long it took."""
-    SCHEMA_VERSION = 3
+    SCHEMA_VERSION = 4
     stamp_s: float
     tick: int
     trial: int
@@ -198,6 +198,12 @@ class ControllerStatus(Message):
     spread_factors: list[float]
     pred_sigma_lat_m: list[float]
     pred_sigma_head_rad: list[float]
+    # v4: learning switched off because the store's data is missing here (store unreachable): since when
+    # (robot time; -1 while learning is on or not configured) and why; and, with a realtime clock, how late
+    # this step started against its period (wall clock; 0 in lockstep)
+    learning_off_since_s: float
+    learning_note: str
+    step_late_ms: float
 
 
 @dataclass(frozen=True, kw_only=True)

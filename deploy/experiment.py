@@ -32,7 +32,7 @@ from common.scenario import Scenario, load_scenario
 from deploy.configs import service_configs, write_service_configs
 from deploy.launcher import LaunchError, Launcher
 from deploy.learned import predict_trial
-from deploy.metrics import TrialRecord, outside_3sigma_fraction, trial_metrics, truth_series
+from deploy.metrics import TrialRecord, loop_figures, outside_3sigma_fraction, trial_metrics, truth_series
 from deploy.recorder import McapRecorder
 from deploy.router import free_port
 from services.bridge.teach_driver import smooth_waypoints
@@ -100,6 +100,9 @@ def write_json_atomic(path: FsPath, data: Any) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+REJOIN_S = 30.0     # how long a service may be gone mid-trial (a restart, a link down) before the run gives up
 
 
 class Experiment:
@@ -319,22 +322,24 @@ class Experiment:
         stopped_since, halt_reason = None, ""
         count = self.sc.trials.count
         last_progress = None
+        gone: dict[str, float] = {}     # service -> when its liveliness token went (a blip, until REJOIN_S)
         while True:
             kind, msg = self._next_event(1.0)
-            if kind is None:
-                if last_progress is not None and time.monotonic() - last_progress > 60.0:
-                    raise ExperimentError(f"trial {trial}: no truth from the bridge for 60 s")
-                continue
+            if kind is None and last_progress is not None and time.monotonic() - last_progress > 60.0:
+                raise ExperimentError(f"trial {trial}: no truth from the bridge for 60 s")
             if kind == "alive":
-                name, up = msg
-                if not up and name in self.services:
-                    rec.end_reason = f"{name} disappeared"
-                    if name != "bridge":
-                        try:
-                            self.control("bridge", "stop", "repeat", trial)
-                        except ExperimentError:
-                            pass
-                    raise ExperimentError(f"trial {trial}: {name} disappeared mid-trial")
+                self._note_presence(gone, *msg)
+            gone_for = self._gone_too_long(gone)
+            if gone_for is not None:
+                rec.end_reason = f"{gone_for} disappeared"
+                if gone_for != "bridge":
+                    try:
+                        self.control("bridge", "stop", "repeat", trial)
+                    except ExperimentError:
+                        pass
+                raise ExperimentError(f"trial {trial}: {gone_for} disappeared mid-trial and did not come back "
+                                      f"within {REJOIN_S:.0f} s")
+            if kind in (None, "alive"):
                 continue
             if getattr(msg, "trial", trial) != trial:
                 continue
@@ -370,6 +375,22 @@ class Experiment:
         self._late_statuses(rec)
         rec.wall_s = time.monotonic() - t_wall
         return rec
+
+    def _note_presence(self, gone: dict[str, float], name: str, up: bool) -> None:
+        """A service's liveliness token went or came back: a restarted service or router, or a link
+        that dropped, comes back on its own, so a blip is noted, not fatal."""
+        if name not in self.services:
+            return
+        if not up and name not in gone:
+            gone[name] = time.monotonic()
+            self.progress.line(f"warning {name} disappeared; waiting up to {REJOIN_S:.0f} s for it to rejoin")
+        elif up and name in gone:
+            self.progress.line(f"warning {name} rejoined after {time.monotonic() - gone.pop(name):.1f} s")
+
+    @staticmethod
+    def _gone_too_long(gone: dict[str, float]) -> str | None:
+        now = time.monotonic()
+        return next((name for name, t in gone.items() if now - t > REJOIN_S), None)
 
     def _late_statuses(self, rec: TrialRecord) -> None:
         """The controller's answers to the last stepped ticks may reach the runner after the bridge's end
@@ -499,6 +520,7 @@ def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, h
     # other nominal models' included), not what the fit used: that is experiences_fit_*
     m = trial_metrics(exp.truth_path, rec, series, *limits, experiences_total=ingested)
     m["outside_3sigma_fraction"] = outside_3sigma_fraction(exp.path, exp.truth_path, rec)
+    m.update(loop_figures(rec, sc.sim.period_s, realtime=sc.sim.clock == "realtime"))
     # the online calibration's factor on the 1 s prediction's spread when the trial ended (calibration.py)
     stepped = rec.stepped_status()
     m["spread_factor_1s"] = stepped[-1].spread_factors[-1] if stepped and stepped[-1].spread_factors else None

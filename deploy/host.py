@@ -63,6 +63,7 @@ def plan_host(m: Manifest, host: str, base: Path) -> HostPlan:
             raise ConfigError(f"certificates of host {host} missing ({missing[0]}, ...): run "
                               f"`lbc deploy certs --manifest FILE` and copy {m.certs_dir}/ca.pem and "
                               f"{m.certs_dir}/{host}/ to this host")
+    # a service the manifest places here but the scenario does not use (a scheduler switched off) stays down
     configs = {s: c for s, c in service_configs(sc, (base / "data").resolve()).items() if s in spec.services}
     paths = write_service_configs(configs, base / "config")
     zdir = base / "zenoh"
@@ -71,7 +72,7 @@ def plan_host(m: Manifest, host: str, base: Path) -> HostPlan:
                 for role in (OPERATOR, *spec.services)}
     ep = parse_endpoint(spec.listen, f"hosts.{host}.listen")
     return HostPlan(host, spec.listen, ep.port, ep.address, router_conf, paths, sessions,
-                    _alive_keys(sc, spec.services), base / "logs")
+                    _alive_keys(sc, configs), base / "logs")
 
 
 def serve(plan: HostPlan, log_level: str, stop: threading.Event, say: Callable[[str], None],

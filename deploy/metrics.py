@@ -173,3 +173,20 @@ def outside_3sigma_fraction(route: Path, truth_path: Path, rec: TrialRecord) -> 
         outside += (abs(real.lateral_m - pred.lateral_m) > 3.0 * s.pred_sigma_lat_m[-1]
                     or abs(d_head) > 3.0 * s.pred_sigma_head_rad[-1])
     return outside / checked if checked else None
+
+
+def loop_figures(rec: TrialRecord, period_s: float, realtime: bool) -> dict:
+    """summary.json extensions from the controller's statuses: how long learning was off (the store's
+    data missing) and since when; with a realtime clock, the control loop's period jitter (how late
+    each step started, p99) and deadline misses (steps whose command left after the next period began)."""
+    steps = rec.stepped_status()
+    off = [s for s in steps if s.learning_off_since_s >= 0]
+    out: dict = {"learning_off_s": len(off) * period_s,
+                 "learning_off_since_s": off[0].learning_off_since_s if off else None,
+                 "learning_note": off[-1].learning_note if off else ""}
+    if realtime:
+        late = np.array([s.step_late_ms for s in steps])
+        solve = np.array([s.solve_ms for s in steps])
+        out["period_jitter_ms_p99"] = _pct(late, 99)
+        out["deadline_misses"] = int(np.count_nonzero(late + solve > period_s * 1e3))
+    return out

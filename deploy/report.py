@@ -34,7 +34,8 @@ _CSS = """body{font-family:sans-serif;max-width:1100px;margin:1em auto;color:#22
 h1{margin-bottom:.2em}h2{border-bottom:1px solid #ccc;margin-top:1.6em}
 table{border-collapse:collapse;font-size:.85em}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
 th{background:#eee}td.k{text-align:left;font-weight:bold}tr.bad td{background:#fde8e8}
-img{max-width:100%}.cap{color:#555;font-size:.9em}"""
+img{max-width:100%}.cap{color:#555;font-size:.9em}
+.warn{background:#fff3cd;border:1px solid #e0c36c;padding:.4em .8em}"""
 
 
 @contextmanager
@@ -281,6 +282,15 @@ def _model_section(model: dict) -> list[str]:
             "actuator_tau_s / prior_std_* in [controller.nmpc] override it.</p>", _kv_table(rows)]
 
 
+def _learning_off_notes(trials: list[dict]) -> list[str]:
+    """A warning where the controller tracked without its learned model (the store's data missing)."""
+    notes = [f"Learning was off in trial {t['trial']} from {t['learning_off_since_s']:.1f} s, for "
+             f"{t['learning_off_s']:.1f} s in all: {t.get('learning_note') or 'store data missing'}. The "
+             "controller tracked with its nominal model there."
+             for t in trials if t.get("learning_off_since_s") is not None]
+    return [f"<p class=warn>{html.escape(n)}</p>" for n in notes]
+
+
 def _section(title: str, caption: str, png: str) -> str:
     return (f"<h2>{html.escape(title)}</h2><p class=cap>{html.escape(caption)}</p>"
             f"<img alt='{html.escape(title)}' src='data:image/png;base64,{png}'>")
@@ -307,6 +317,7 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(name)} report</title>"
         f"<style>{_CSS}</style></head><body><h1>{html.escape(name)}</h1>",
         _kv_table(header),
+        *_learning_off_notes(trials),
         _section("Map", "Top view, equal aspect, metres: taught route, waypoints, terrain patches (coloured by "
                  "kind) and the driven truth trajectory of the first and last trial.",
                  _plot_map(scenario, path, series)),

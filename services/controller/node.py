@@ -78,9 +78,14 @@ class ControllerService(Service):
         self.model_tag = cfg.nmpc.lag(cfg.period_s).model_tag
         self.outbox = ExperienceOutbox(node, r, resend_after_s=st.resend_after_s,
                                        model=self.model_tag) if st.enabled else None
-        # lockstep: one snapshot of the store per trial, so that a seed gives one run (store_client.py)
+        # one snapshot of the store per trial (store_client.py): the whole route's windows are in memory
+        # before the robot moves, so a link to the learning host that drops mid-trial costs nothing, and
+        # in lockstep a seed gives one run
         self.cache = WindowCache(node.session, bins=st.bins(), lookahead_vertices=st.lookahead_vertices,
-                                 model=self.model_tag, snapshot=cfg.clock_mode == "lockstep") if st.enabled else None
+                                 model=self.model_tag, snapshot=True) if st.enabled else None
+        self.learning_off_since_s = -1.0    # robot time since which the store's data is missing here
+        self.learning_note = ""
+        self.step_late_ms = 0.0             # realtime: how late the current step started
 
     # --- control -----------------------------------------------------------------------------
     def on_control(self, ctl: Control) -> None:
@@ -133,6 +138,7 @@ class ControllerService(Service):
         self.core = ControllerCore(path, tracker, self.cfg.period_s,
                                    self._calibration(req.path_id, tracker.lag.model_tag, settings.horizon))
         self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
+        self.learning_off_since_s, self.learning_note = -1.0, ""
         self._use_model(tracker.lag.model_tag)
         if self.cache is not None:
             snapshot = self.cache.set_route(req.path_id, len(path))
@@ -281,7 +287,9 @@ class ControllerService(Service):
                     self.dispatch(*self.inbox.get(timeout=left))
                 except queue.Empty:
                     break
-            if time.monotonic() - next_wall > 5 * self.cfg.period_s:
+            late_s = time.monotonic() - next_wall
+            self.step_late_ms = max(0.0, late_s) * 1e3
+            if late_s > 5 * self.cfg.period_s:
                 next_wall = time.monotonic()
             clock, _ = self.clock.get()
             if self.core is not None and clock is not None:
@@ -306,7 +314,7 @@ class ControllerService(Service):
                 self.outbox.add(stamp_s=obs.stamp_s, trial=self.trial, path_id=self.path_id, vertex=obs.vertex,
                                 v_cmd_mps=obs.v_cmd_mps, a=obs.a, g=obs.g)
             self.outbox.flush()
-        window_n, hyper_version = self._follow_window(d)
+        window_n, hyper_version = self._follow_window(d, now_s)
         # the command must arrive; a status may be dropped under congestion rather than stall the loop
         self.node.publish(self.k_status, self._status(d, now_s, tick, solve_ms, window_n, hyper_version),
                           droppable=True)
@@ -315,17 +323,32 @@ class ControllerService(Service):
             # the next window's GP now, while the robot drives on this command (local_model.py)
             self.models.prepare(self.core.path, d.distance_m + d.v_mps * self.cfg.period_s, d.v_mps)
 
-    def _follow_window(self, d: Decision) -> tuple[int, int]:
-        """Moves the prefetch to where the robot is; returns the size of the window the law predicted
-        with and the hyperparameters' version."""
+    def _follow_window(self, d: Decision, now_s: float) -> tuple[int, int]:
+        """Moves the prefetch to where the robot is and notes whether learning is off here (the store's
+        data for this place is missing); returns the size of the window the law predicted with and the
+        hyperparameters' version."""
         if self.cache is None:
             return 0, 0
         speed = d.v_mps if d.v_mps > 0 else self.speed_mps   # the scheduled speed here, when moving
         self.cache.set_position(d.vertex, speed)
+        local = self.cache.local(d.vertex, speed)
+        self._note_learning(local.missing_bins, now_s)
         if self.models is not None:
             return self.models.last_n, self.models.last_version
         hyper = self.cache.hyper
-        return len(self.cache.local(d.vertex, speed).A), hyper.version if hyper is not None else 0
+        return len(local.A), hyper.version if hyper is not None else 0
+
+    def _note_learning(self, missing_bins: int, now_s: float) -> None:
+        if missing_bins == 0:
+            if self.learning_off_since_s >= 0:
+                self.log.info("learning on again at %.1f s (off since %.1f s)", now_s, self.learning_off_since_s)
+            self.learning_off_since_s, self.learning_note = -1.0, ""
+            return
+        if self.learning_off_since_s < 0:
+            self.learning_off_since_s = now_s
+            self.log.warning("learning off at %.1f s: the store's data for vertex here is missing (%s); "
+                             "tracking with the nominal model", now_s, self.cache.last_error or "not fetched yet")
+        self.learning_note = f"store data missing: {self.cache.last_error or 'not fetched yet'}"
 
     def _status(self, d: Decision, now_s: float, tick: int, solve_ms: float, window_n: int,
                 hyper_version: int) -> ControllerStatus:
@@ -347,7 +370,9 @@ class ControllerService(Service):
             solver_status=law.solve.status if law is not None and law.solve is not None else "",
             spread_factors=list(self.core.spread_factors) if self.core is not None else [],
             pred_sigma_lat_m=list(unc.horizon_sigma_lat_m) if unc else [],
-            pred_sigma_head_rad=list(unc.horizon_sigma_head_rad) if unc else [])
+            pred_sigma_head_rad=list(unc.horizon_sigma_head_rad) if unc else [],
+            learning_off_since_s=self.learning_off_since_s, learning_note=self.learning_note,
+            step_late_ms=self.step_late_ms)
 
     def close(self) -> None:
         if self.cache is not None:
