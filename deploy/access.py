@@ -123,7 +123,7 @@ def router_config(m: Manifest, host: str, robot: str) -> dict:
     spec = m.host(host)
     conf = {"mode": "router", "scouting": {"multicast": {"enabled": False}},
             "listen": {"endpoints": [spec.listen]},
-            "connect": {"endpoints": [m.host(link).listen for link in spec.links]},
+            "connect": {"endpoints": [m.host(link).reach_endpoint for link in spec.links]},
             "transport": _link(m, host, ROUTER, listen=True)}
     if m.security == "mtls":
         conf["access_control"] = access_control(m, robot)

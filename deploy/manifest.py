@@ -32,6 +32,13 @@ class HostSpec:
     listen: str                                        # this host's router endpoint, e.g. tls/10.0.0.1:7447
     services: list[str] = field(default_factory=list)  # the services this host runs
     links: list[str] = field(default_factory=list)     # hosts whose routers this host's router connects to
+    # where the other hosts' routers connect to reach this one, when not `listen` (a NAT's port forward,
+    # a proxy); its address must still be the one in `listen`, which the certificate names
+    reach: str = ""
+
+    @property
+    def reach_endpoint(self) -> str:
+        return self.reach or self.listen
 
 
 @dataclass(frozen=True)
@@ -99,6 +106,8 @@ def _check(m: Manifest, where: str) -> None:
         if not NAME_RE.match(name):
             raise ConfigError(f"{where}: host name {name!r} must be 1-64 characters of [A-Za-z0-9_-]")
         ep = parse_endpoint(spec.listen, f"{where}: hosts.{name}.listen")
+        if spec.reach and parse_endpoint(spec.reach, f"{where}: hosts.{name}.reach").protocol != ep.protocol:
+            raise ConfigError(f"{where}: hosts.{name}.reach must use {ep.protocol}/ like its listen endpoint")
         if ep.protocol != proto:
             raise ConfigError(f"{where}: hosts.{name}.listen is {ep.protocol}/ but security = {m.security!r} "
                               f"needs {proto}/")

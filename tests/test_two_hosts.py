@@ -17,89 +17,61 @@ import pytest
 
 from deploy.certs import make_certs
 from deploy.manifest import load_manifest
+from deploy.netns import NetnsUnavailable, TwoHosts
 from tests.conftest import SHORT_SCENARIO, dump_toml_dict, wait_until
 from tests.test_cli import ROOT, Running
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-TAG = f"{os.getpid() % 100000}"
-NS = {"robot": f"lbcR{TAG}", "learning": f"lbcL{TAG}"}
-VETH = {"robot": f"lvR{TAG}", "learning": f"lvL{TAG}"}
-SUBNET = f"10.{200 + os.getpid() % 50}.{os.getpid() % 250}"
-ADDR = {"robot": f"{SUBNET}.1", "learning": f"{SUBNET}.2"}
 SCENARIO = dict(SHORT_SCENARIO, name="twohost", controller={"algorithm": "lb-nmpc"},
                 scheduler={"enabled": True})
+DELAY_MS = 50.0     # one way between the routers, through deploy.delay_proxy on the learning host
 
 
-def sh(*cmd: str) -> None:
-    subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=30)
-
-
-def in_ns(host: str) -> tuple[str, ...]:
-    return ("ip", "netns", "exec", NS[host])
-
-
-def make_hosts() -> None:
-    for host in NS:
-        sh("ip", "netns", "add", NS[host])
-        sh(*in_ns(host), "ip", "link", "set", "lo", "up")
-    sh("ip", "link", "add", VETH["robot"], "type", "veth", "peer", "name", VETH["learning"])
-    for host in NS:
-        sh("ip", "link", "set", VETH[host], "netns", NS[host])
-        sh(*in_ns(host), "ip", "addr", "add", f"{ADDR[host]}/24", "dev", VETH[host])
-        sh(*in_ns(host), "ip", "link", "set", VETH[host], "up")
-
-
-def remove_hosts() -> None:
-    for host in NS:
-        subprocess.run(["ip", "netns", "del", NS[host]], capture_output=True, timeout=30)
-
-
-def link(up: bool) -> None:
-    sh(*in_ns("robot"), "ip", "link", "set", VETH["robot"], "up" if up else "down")
-
-
-def write_deployment(base: Path, scenario: dict) -> Path:
+def write_deployment(net: TwoHosts, base: Path, scenario: dict, reach_port: int | None = None) -> Path:
     (base / "scenario.toml").write_text(dump_toml_dict(scenario))
     manifest = base / "deployment.toml"
+    reach = f'reach = "tls/{net.addr["learning"]}:{reach_port}"' if reach_port else ""
     manifest.write_text(f'''name = "twohost"
 scenario = "scenario.toml"
 [hosts.robot]
-listen = "tls/{ADDR['robot']}:7447"
+listen = "tls/{net.addr['robot']}:7447"
 services = ["bridge", "localizer", "controller"]
 links = ["learning"]
 [hosts.learning]
-listen = "tls/{ADDR['learning']}:7447"
+listen = "tls/{net.addr['learning']}:7447"
 services = ["gp_store", "scheduler"]
+{reach}
 ''')
     make_certs(load_manifest(manifest))
     return manifest
 
 
 @pytest.fixture(scope="module")
-def hosts():
-    if os.geteuid() != 0:
-        pytest.skip("network namespaces need root")
+def net():
     try:
-        make_hosts()
-    except (subprocess.CalledProcessError, FileNotFoundError) as exc:
-        remove_hosts()
-        pytest.skip(f"cannot make network namespaces here: {getattr(exc, 'stderr', exc)}")
-    try:
-        yield
-    finally:
-        remove_hosts()
+        with TwoHosts() as hosts:
+            yield hosts
+    except NetnsUnavailable as exc:
+        pytest.skip(str(exc))
 
 
 @contextmanager
-def deployed(base: Path, scenario: dict):
-    """`lbc launch --manifest ... --host` on each host, until the block ends (Ctrl-C to each)."""
-    manifest = write_deployment(base, scenario)
+def deployed(net: TwoHosts, base: Path, scenario: dict, delay_ms: float = 0.0):
+    """`lbc launch --manifest ... --host` on each host, until the block ends (Ctrl-C to each); with a
+    delay, the robot's router reaches the learning host's through the delay proxy."""
+    manifest = write_deployment(net, base, scenario, 7448 if delay_ms else None)
     launches = {}
+    proxy = None
     try:
+        if delay_ms:
+            a = net.addr["learning"]
+            proxy = subprocess.Popen([*net.prefix("learning"), sys.executable, "-m", "deploy.delay_proxy",
+                                      "--listen", f"{a}:7448", "--to", f"{a}:7447", "--delay-ms", str(delay_ms)],
+                                     cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         for host in ("learning", "robot"):
             launches[host] = Running("launch", "--manifest", str(manifest), "--host", host,
-                                     "--dir", str(base / host), prefix=in_ns(host))
+                                     "--dir", str(base / host), prefix=net.prefix(host))
         for host, launch in launches.items():
             assert launch.wait_for("router on", 120.0), "".join(filter(None, launch.lines))
         yield manifest
@@ -112,24 +84,27 @@ def deployed(base: Path, scenario: dict):
                 launch.finish(30.0)
             except subprocess.TimeoutExpired:
                 launch.kill()
+        if proxy is not None:
+            proxy.terminate()
+            proxy.wait(10)
 
 
 @pytest.fixture(scope="module")
-def two_hosts(hosts, tmp_path_factory):
+def two_hosts(net, tmp_path_factory):
     base = tmp_path_factory.mktemp("twohost")
-    with deployed(base, SCENARIO) as manifest:
-        yield manifest, base
+    with deployed(net, base, SCENARIO, DELAY_MS) as manifest:
+        yield net, manifest, base
 
 
-def run_in(host: str, *args: str, timeout: float = 600.0) -> subprocess.CompletedProcess:
-    return subprocess.run([*in_ns(host), sys.executable, *args], cwd=ROOT, capture_output=True, text=True,
+def run_in(net: TwoHosts, host: str, *args: str, timeout: float = 600.0) -> subprocess.CompletedProcess:
+    return subprocess.run([*net.prefix(host), sys.executable, *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout, env=dict(os.environ, PYTHONPATH=str(ROOT)))
 
 
 def test_an_experiment_runs_with_store_and_scheduler_on_the_learning_host(two_hosts, tmp_path):
-    manifest, base = two_hosts
+    net, manifest, base = two_hosts
     out = tmp_path / "out"
-    r = run_in("robot", "-m", "deploy.cli", "experiment", "run", str(base / "scenario.toml"), "--out", str(out),
+    r = run_in(net, "robot", "-m", "deploy.cli", "experiment", "run", str(base / "scenario.toml"), "--out", str(out),
                "--manifest", str(manifest), "--host", "robot")
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads((out / "summary.json").read_text())
@@ -139,15 +114,24 @@ def test_an_experiment_runs_with_store_and_scheduler_on_the_learning_host(two_ho
     assert summary["trials"][1]["experiences_fit_used"] > 0 and summary["trials"][1]["schedule_version"] >= 2
     # the learning host's store file holds them
     assert (base / "learning" / "data" / "experiences.db").stat().st_size > 0
+    # and the store's answers did cross the delayed link: a query's round trip takes two delays
+    probe = ("import sys, time; from common.bus import open_session, query; from common import keys; "
+             "from deploy import access; from deploy.manifest import load_manifest; "
+             "m = load_manifest(sys.argv[1]); s = open_session(m.host('robot').listen, timeout_s=10, "
+             "zenoh_conf=access.session_config(m, 'robot', 'operator')); t = time.monotonic(); "
+             "n = len(query(s, keys.store_stats(), timeout_s=5)); print(n, (time.monotonic() - t) * 1e3)")
+    r = run_in(net, "robot", "-c", probe, str(manifest), timeout=60.0)
+    replies, rtt_ms = r.stdout.split()
+    assert int(replies) == 1 and float(rtt_ms) >= 2 * DELAY_MS, r.stdout + r.stderr
 
 
 def test_sessions_are_entitled_only_by_their_certificate(two_hosts):
     """From each host: no certificate is refused; a valid certificate of the wrong role delivers no
     commands, experiences, acknowledgements, corridor updates or schedules, and gets no answer to a
     control request; the right certificate does (so the observer is not blind)."""
-    manifest, _ = two_hosts
+    net, manifest, _ = two_hosts
     for host in ("robot", "learning"):
-        r = run_in(host, "-m", "deploy.cli", "deploy", "check", "--manifest", str(manifest), "--host", host,
+        r = run_in(net, host, "-m", "deploy.cli", "deploy", "check", "--manifest", str(manifest), "--host", host,
                    timeout=180.0)
         assert r.returncode == 0 and "access control holds" in r.stderr, r.stderr[-3000:]
         result = json.loads(r.stdout.strip().splitlines()[-1])
@@ -163,26 +147,26 @@ REALTIME = dict(SCENARIO, name="linkdown", sim={"clock": "realtime"}, scheduler=
 LINK_DOWN_S = 20.0
 
 
-def test_the_link_to_the_learning_host_drops_for_20_s_mid_trial(hosts, tmp_path):
+def test_the_link_to_the_learning_host_drops_for_20_s_mid_trial(net, tmp_path):
     """Realtime clock: the link goes down for 20 s once trial 2 is under way. The controller keeps its
     period on the route's snapshot (learning stays on), its experiences queue and are all acknowledged
     after the link returns, the runner carries on; nothing is restarted by hand."""
-    with deployed(tmp_path, REALTIME) as manifest:
+    with deployed(net, tmp_path, REALTIME) as manifest:
         controller_log = tmp_path / "robot" / "logs" / "controller.log"
         run = Running("experiment", "run", str(tmp_path / "scenario.toml"), "--out", str(tmp_path / "out"),
-                      "--manifest", str(manifest), "--host", "robot", prefix=in_ns("robot"))
+                      "--manifest", str(manifest), "--host", "robot", prefix=net.prefix("robot"))
         try:
             wait_until(lambda: "trial 2: store snapshot" in controller_log.read_text(), 300.0,
                        "trial 2 to be prepared")
-            link(False)
+            net.link(False)
             try:
                 time.sleep(LINK_DOWN_S)     # the outage itself
             finally:
-                link(True)
+                net.link(True)
             rc, err = run.finish(300.0)
         finally:
             run.kill()
-            link(True)
+            net.link(True)
     assert rc == 0, err[-3000:]
     trials = json.loads((tmp_path / "out" / "summary.json").read_text())["trials"]
     assert [t["completed"] for t in trials] == [True, True], err[-3000:]
