@@ -28,18 +28,19 @@ SCENARIO = dict(SHORT_SCENARIO, name="twohost", controller={"algorithm": "lb-nmp
 DELAY_MS = 50.0     # one way between the routers, through deploy.delay_proxy on the learning host
 
 
-def write_deployment(net: TwoHosts, base: Path, scenario: dict, reach_port: int | None = None) -> Path:
+def write_deployment(net: TwoHosts, base: Path, scenario: dict, reach_port: int | None = None,
+                     port: int = 7447) -> Path:
     (base / "scenario.toml").write_text(dump_toml_dict(scenario))
     manifest = base / "deployment.toml"
     reach = f'reach = "tls/{net.addr["learning"]}:{reach_port}"' if reach_port else ""
     manifest.write_text(f'''name = "twohost"
 scenario = "scenario.toml"
 [hosts.robot]
-listen = "tls/{net.addr['robot']}:7447"
+listen = "tls/{net.addr['robot']}:{port}"
 services = ["bridge", "localizer", "controller"]
 links = ["learning"]
 [hosts.learning]
-listen = "tls/{net.addr['learning']}:7447"
+listen = "tls/{net.addr['learning']}:{port}"
 services = ["gp_store", "scheduler"]
 {reach}
 ''')
@@ -57,10 +58,10 @@ def net():
 
 
 @contextmanager
-def deployed(net: TwoHosts, base: Path, scenario: dict, delay_ms: float = 0.0):
+def deployed(net: TwoHosts, base: Path, scenario: dict, delay_ms: float = 0.0, port: int = 7447):
     """`lbc launch --manifest ... --host` on each host, until the block ends (Ctrl-C to each); with a
     delay, the robot's router reaches the learning host's through the delay proxy."""
-    manifest = write_deployment(net, base, scenario, 7448 if delay_ms else None)
+    manifest = write_deployment(net, base, scenario, 7448 if delay_ms else None, port)
     launches = {}
     proxy = None
     try:
@@ -151,7 +152,8 @@ def test_the_link_to_the_learning_host_drops_for_20_s_mid_trial(net, tmp_path):
     """Realtime clock: the link goes down for 20 s once trial 2 is under way. The controller keeps its
     period on the route's snapshot (learning stays on), its experiences queue and are all acknowledged
     after the link returns, the runner carries on; nothing is restarted by hand."""
-    with deployed(net, tmp_path, REALTIME) as manifest:
+    # its own ports: the module's deployment is still up on 7447
+    with deployed(net, tmp_path, REALTIME, port=7457) as manifest:
         controller_log = tmp_path / "robot" / "logs" / "controller.log"
         run = Running("experiment", "run", str(tmp_path / "scenario.toml"), "--out", str(tmp_path / "out"),
                       "--manifest", str(manifest), "--host", "robot", prefix=net.prefix("robot"))
