@@ -65,6 +65,10 @@ class _Observer:
                     self._cond.notify_all()
         return on_sample
 
+    def counts(self) -> dict[str, int]:
+        with self._cond:
+            return dict(self.got)
+
     def wait(self, name: str, count: int, timeout_s: float) -> bool:
         with self._cond:
             return self._cond.wait_for(lambda: self.got[name] >= count, timeout_s)
@@ -98,13 +102,13 @@ def check_access(m: Manifest, host: str, robot: str, path_id: str, timeout_s: fl
             result.operator_control_replies = len(query(s, keys.control(robot, "bridge"), MARK, timeout_s))
         finally:
             s.close()
-        with observer._cond:
-            result.entitled_puts_delivered = observer.got["ctrl_corridor"]
-            for name, n in observer.got.items():
-                others = n - (1 if name == "ctrl_corridor" else 0)
-                if others > 0:
-                    result.rogue_puts_delivered += others
-                    result.leaks.append(f"{others} x put {watched[name]}")
+        got = observer.counts()
+        result.entitled_puts_delivered = got["ctrl_corridor"]
+        for name, n in got.items():
+            others = n - (1 if name == "ctrl_corridor" else 0)
+            if others > 0:
+                result.rogue_puts_delivered += others
+                result.leaks.append(f"{others} x put {watched[name]}")
     finally:
         observer_session.close()
     return result

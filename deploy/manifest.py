@@ -14,7 +14,6 @@ NAME` starts one host of it, `lbc deploy certs --manifest FILE` makes its certif
 """
 from __future__ import annotations
 
-import ipaddress
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -66,14 +65,6 @@ class Endpoint:
     protocol: str
     address: str
     port: int
-
-    @property
-    def is_ip(self) -> bool:
-        try:
-            ipaddress.ip_address(self.address)
-            return True
-        except ValueError:
-            return False
 
 
 def parse_endpoint(text: str, where: str) -> Endpoint:
