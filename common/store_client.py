@@ -148,6 +148,9 @@ class LocalData:
 SNAPSHOT_PAGE_HALF_VERTICES = 64
 # ... and every speed bin on either side of bin 0: commanded speeds up to 250 m/s at 0.25 m/s bins
 SNAPSHOT_SPEED_BINS = 1000
+# A snapshot is taken between trials, where waiting costs nothing but a short timeout under load would
+# leave a lockstep trial on whatever prefetching happens to fetch in time (one seed, two runs)
+SNAPSHOT_TIMEOUT_S = 15.0
 
 
 @dataclass(frozen=True)
@@ -300,14 +303,17 @@ class WindowCache:
         page = 2 * SNAPSHOT_PAGE_HALF_VERTICES + 1
         for lo in range(0, max(n_vertices, 1), page):
             window = self._get_window(path_id, lo + SNAPSHOT_PAGE_HALF_VERTICES, 0.0,
-                                      f"&c_vertex={SNAPSHOT_PAGE_HALF_VERTICES}&c_velocity={SNAPSHOT_SPEED_BINS}")
+                                      f"&c_vertex={SNAPSHOT_PAGE_HALF_VERTICES}&c_velocity={SNAPSHOT_SPEED_BINS}",
+                                      timeout_s=SNAPSHOT_TIMEOUT_S)
             if window is None:
                 errors.append(f"vertices {lo}-{lo + page - 1}: {self.last_error}")
-            else:
-                bins.update(_by_bin(window))
-        hyper, answered = self._get_hyper(path_id)
-        if not answered:
-            errors.append("hyperparameters: no store answered")
+                break       # the store is not answering: do not wait out the rest of the pages too
+            bins.update(_by_bin(window))
+        hyper = None
+        if not errors:
+            hyper, answered = self._get_hyper(path_id, SNAPSHOT_TIMEOUT_S)
+            if not answered:
+                errors.append("hyperparameters: no store answered")
         complete = not errors
         with self._lock:
             self._bins, self._assembled = bins, {}
@@ -321,12 +327,12 @@ class WindowCache:
             self._wake.set()
         return snap
 
-    def _get_hyper(self, path_id: str) -> tuple[HyperMsg | None, bool]:
+    def _get_hyper(self, path_id: str, timeout_s: float | None = None) -> tuple[HyperMsg | None, bool]:
         """The store's newest hyperparameters of this model for the route (None: none fitted), and
         whether any store answered at all."""
         selector = keys.store_hyper(path_id) + (f"?model={self.model}" if self.model else "")
         best, answered = None, False
-        for rep in self.session.get(selector, timeout=self.timeout):
+        for rep in self.session.get(selector, timeout=timeout_s or self.timeout):
             answered = True
             if rep.ok is None:
                 continue        # no hyperparameters for this route and model yet
@@ -386,14 +392,15 @@ class WindowCache:
                 return
             v += 2 * self.cv + 1
 
-    def _get_window(self, path_id: str, center: int, speed: float, extra: str = "") -> ExperienceWindow | None:
+    def _get_window(self, path_id: str, center: int, speed: float, extra: str = "",
+                    timeout_s: float | None = None) -> ExperienceWindow | None:
         """One window query (None: no usable answer; `last_error` says why)."""
         self.queries += 1
         selector = f"{keys.store_window(path_id)}?vertex={center}&speed={speed:.6f}{extra}"
         if self.model:
             selector += f"&model={self.model}"
         window, error = None, "no store answered"
-        for rep in self.session.get(selector, timeout=self.timeout):
+        for rep in self.session.get(selector, timeout=timeout_s or self.timeout):
             if rep.ok is None:
                 self.failures += 1
                 error = rep.err.payload.to_bytes().decode("utf-8", "replace")

@@ -87,6 +87,11 @@ class Progress:
         self._last = time.monotonic()
 
 
+def _missed_ticks(ticks: list[int]) -> list[tuple[int, int]]:
+    """Gaps (last tick before, first tick after) in a stream of ticks that should be contiguous."""
+    return [(a, b) for a, b in zip(ticks, ticks[1:]) if b != a + 1]
+
+
 def _bar(frac: float, width: int = 24) -> str:
     n = int(round(max(0.0, min(1.0, frac)) * width))
     return "[" + "#" * n + "." * (width - n) + "]"
@@ -233,6 +238,7 @@ class Experiment:
         self.control("bridge", "start", "teach", 0)
         driven, last, last_progress = 0.0, None, time.monotonic()
         truth_route = RouteRecorder(sc.path.vertex_spacing_m)
+        ticks: list[int] = []
         while True:
             kind, msg = self._next_event(1.0)
             if kind is None and time.monotonic() - last_progress > 60.0:
@@ -242,6 +248,7 @@ class Experiment:
                 if last is not None:
                     driven += math.hypot(msg.x_world_m - last.x_world_m, msg.y_world_m - last.y_world_m)
                 last = msg
+                ticks.append(msg.tick)
                 truth_route.add((msg.x_world_m, msg.y_world_m, msg.theta_world_rad))
                 self.progress.update(f"teach   {_bar(driven / ref_len)} {driven:6.1f}/{ref_len:.1f} m  "
                                      f"t={msg.stamp_s:7.1f} s")
@@ -250,6 +257,10 @@ class Experiment:
                 break
             elif kind == "alive" and not msg[1] and msg[0] in ROBOT_SERVICES:
                 raise ExperimentError(f"{msg[0]} disappeared during teach")
+        if missed := _missed_ticks(ticks):
+            # every later error figure is measured against this route: say it is short of samples
+            log.warning("teach: %d truth samples did not reach the runner (%s); the truth route is built "
+                        "without them", sum(b - a - 1 for a, b in missed), ", ".join(f"{a}-{b}" for a, b in missed[:5]))
         rep = self.control("localizer", "stop", "teach", 0)
         try:
             route = query_one(self.session, keys.route(self.path_id), RouteMsg, timeout_s=10.0)

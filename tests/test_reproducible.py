@@ -49,8 +49,14 @@ def test_two_lockstep_runs_of_one_seed_give_the_same_summary(tmp_path, scenario_
     assert all(t["experiences_fit_retained"] for t in trials), trials
     on_disk = [json.loads((tmp_path / d / "summary.json").read_text()) for d in ("a", "b")]
     diff = differences(reproducible_part(on_disk[0]), reproducible_part(on_disk[1]))
-    assert not diff, "\n".join(diff)
+    assert not diff, "\n".join(diff + _warnings(tmp_path / "a") + _warnings(tmp_path / "b"))
     assert on_disk[0] == json.loads(json.dumps(first)) and on_disk[1] == json.loads(json.dumps(second))
+
+
+def _warnings(out_dir) -> list[str]:
+    """What the services of a run warned about: where a run that differs went its own way."""
+    return [f"{log.name}: {line}" for log in sorted((out_dir / "logs").glob("*.log"))
+            for line in log.read_text(errors="replace").splitlines() if "WARNING" in line or "ERROR" in line]
 
 
 def test_the_comparison_leaves_out_exactly_the_wall_clock_values():

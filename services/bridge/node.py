@@ -241,7 +241,9 @@ class BridgeService(Service):
                                               rejected_msgs=self.node.decoder.rejected_total))
         if self.renderer is not None:
             # rendered from the truth pose on a flat world: side slopes tilt the robot, not the images
-            r.publish(self.k_stereo, self.renderer.frame_for_sample(s, trial), droppable=True)
+            # realtime: a newer frame supersedes a dropped one; lockstep: the localizer answers the tick from it
+            r.publish(self.k_stereo, self.renderer.frame_for_sample(s, trial),
+                      droppable=self.cfg.clock.mode != "lockstep")
         # truth last: the localizer reacts to it, so everything else of this tick is already out
         r.publish(self.k_truth, TruthPose(stamp_s=s.stamp_s, tick=s.tick, trial=trial, x_world_m=s.x,
                                           y_world_m=s.y, theta_world_rad=s.theta, v_mps=s.v_ground,

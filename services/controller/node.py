@@ -315,9 +315,10 @@ class ControllerService(Service):
                                 v_cmd_mps=obs.v_cmd_mps, a=obs.a, g=obs.g)
             self.outbox.flush()
         window_n, hyper_version = self._follow_window(d, now_s)
-        # the command must arrive; a status may be dropped under congestion rather than stall the loop
+        # the command must arrive; in realtime a status may be dropped under congestion rather than stall
+        # the loop, in lockstep it is part of the tick's answer (the bridge waits for it, the runner counts it)
         self.node.publish(self.k_status, self._status(d, now_s, tick, solve_ms, window_n, hyper_version),
-                          droppable=True)
+                          droppable=self.cfg.clock_mode != "lockstep")
         self.core.keep_prediction(tick, d)
         if self.models is not None and d.v_mps > 0:
             # the next window's GP now, while the robot drives on this command (local_model.py)
