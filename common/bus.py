@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import queue
 import re
 import signal
@@ -270,6 +271,29 @@ def query_params(query_obj: zenoh.Query) -> dict[str, str]:
             key, _, value = part.partition("=")
             out[key] = value
     return out
+
+
+def int_param(params: dict[str, str], name: str, lo: int, hi: int, default: int | None = None) -> int | None:
+    """A whole-number selector parameter within [lo, hi] (None if absent and no default): anything else
+    is a ValueError naming the parameter, so a query like vertex=1e30 is answered with a reason."""
+    if name not in params:
+        return default
+    text = params[name]
+    if not re.fullmatch(r"[+-]?\d{1,18}", text) or not lo <= int(text) <= hi:
+        raise ValueError(f"{name} must be a whole number in [{lo}, {hi}], got {text[:40]!r}")
+    return int(text)
+
+
+def float_param(params: dict[str, str], name: str, lo: float, hi: float) -> float:
+    """A required finite number selector parameter within [lo, hi]."""
+    text = params.get(name)
+    try:
+        value = float(text) if text is not None else math.nan
+    except ValueError:
+        value = math.nan
+    if not lo <= value <= hi:
+        raise ValueError(f"{name} must be a number in [{lo:g}, {hi:g}], got {str(text)[:40]!r}")
+    return value
 
 
 def reply(query_obj: zenoh.Query, key: str, msg: Message) -> None:

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from collections import Counter
-from typing import Any, ClassVar, TypeVar
+from typing import Any, Callable, ClassVar, TypeVar
 
 import msgpack
 
@@ -68,33 +69,57 @@ def decode(cls: type[M], data: bytes | bytearray | memoryview) -> M:
 class Decoder:
     """Decode-or-reject for services: logs a reason, counts rejections per key, never raises.
 
-    Logging is limited to `burst` lines per key every `window_s` seconds, so a flood of garbage
-    cannot flood the log; the counters see everything."""
+    A flood of garbage must not flood the log or the memory, on one key or on a hundred thousand:
+    every `window_s` seconds at most `burst` lines per key and `total_burst` lines in all are logged
+    (a window that suppressed lines ends with one line saying how many), and counts are kept for at
+    most `max_keys` keys, the rest under OTHER_KEYS. The total sees everything."""
 
-    def __init__(self, logger: logging.Logger, window_s: float = 5.0, burst: int = 10):
+    OTHER_KEYS = "(other keys)"
+
+    def __init__(self, logger: logging.Logger, window_s: float = 5.0, burst: int = 10, total_burst: int = 50,
+                 max_keys: int = 1000, clock: Callable[[], float] = time.monotonic):
         self._log = logger
+        self._clock = clock
         self._window_s = window_s
         self._burst = burst
-        self._windows: dict[str, tuple[float, int]] = {}
+        self._total_burst = total_burst
+        self._max_keys = max_keys
+        self._window_start = -math.inf
+        self._logged: Counter[str] = Counter()    # lines per key in this window (only keys that logged)
+        self._suppressed: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
-
-    @property
-    def rejected_total(self) -> int:
-        return sum(self.rejected.values())
+        self.rejected_total = 0
 
     def __call__(self, cls: type[M], data: Any, key: str) -> M | None:
         try:
             return decode(cls, data)
         except DecodeError as exc:
-            self.rejected[key] += 1
-            now = time.monotonic()
-            start, logged = self._windows.get(key, (now, 0))
-            if now - start >= self._window_s:
-                start, logged = now, 0
-            if logged < self._burst:
-                self._log.warning("rejected message on %s (%d so far): %s", key, self.rejected[key], exc)
-            elif logged == self._burst:
-                self._log.warning("more rejected messages on %s; logging at most %d every %.0f s", key,
-                                  self._burst, self._window_s)
-            self._windows[key] = (start, logged + 1)
+            self.reject(key, str(exc))
             return None
+
+    def reject(self, key: str, reason: str = "") -> None:
+        """Count one unusable message on `key` (logging `reason` within the rate limits if given)."""
+        self.rejected_total += 1
+        self.rejected[key if key in self.rejected or len(self.rejected) < self._max_keys else self.OTHER_KEYS] += 1
+        if not reason:
+            return
+        now = self._clock()
+        if now - self._window_start >= self._window_s:
+            self._end_window()
+            self._window_start = now
+        if self._logged[key] < self._burst and self._logged.total() < self._total_burst:
+            self._logged[key] += 1
+            self._log.warning("rejected message on %s (%d so far): %s", key,
+                              self.rejected[key] if key in self.rejected else self.rejected_total, reason)
+        else:
+            if not self._suppressed:
+                self._log.warning("more rejected messages; logging at most %d per key and %d in all every %.0f s",
+                                  self._burst, self._total_burst, self._window_s)
+            self._suppressed[key if key in self._suppressed or len(self._suppressed) < 5 else self.OTHER_KEYS] += 1
+
+    def _end_window(self) -> None:
+        if self._suppressed:
+            self._log.warning("%d rejected messages not logged in the last %.0f s (%s)", self._suppressed.total(),
+                              self._window_s, ", ".join(f"{k}: {n}" for k, n in self._suppressed.most_common()))
+        self._logged.clear()
+        self._suppressed.clear()

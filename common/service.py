@@ -60,8 +60,7 @@ class Service:
                 raise DecodeError("empty control request")
             req = decode(ControlRequest, payload.to_bytes())
         except DecodeError as exc:
-            self.node.decoder.rejected[self._control_key] += 1
-            self.log.warning("rejected control request: %s", exc)
+            self.node.decoder.reject(self._control_key, f"control request: {exc}")
             try:
                 query.reply_err(f"rejected: {exc}".encode())
             finally:
@@ -97,9 +96,11 @@ class Service:
             return
         try:
             self.on_message(key, item)
-        except Exception:  # well-formed but unusable input: log and count it, keep running
-            self.node.decoder.rejected[key] += 1
-            self.log.exception("message on %s could not be handled", key)
+        except Exception as exc:  # well-formed but unusable input: log and count it, keep running
+            # rate-limited like malformed input (a flood of these must not flood the log); the traceback
+            # at DEBUG
+            self.node.decoder.reject(key, f"could not be handled: {type(exc).__name__}: {exc}")
+            self.log.debug("message on %s could not be handled", key, exc_info=True)
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():

@@ -614,7 +614,10 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
                 "wall s per simulated minute (teach + repeats)": round(sim_wall / (sim_s / 60.0), 2) if sim_s else None,
                 "wall s per simulated minute (whole run)": round(wall / (sim_s / 60.0), 2) if sim_s else None,
                 "messages recorded": recorder.count if recorder else 0,
-                "stereo frames not recorded (record_stereo_every)": recorder.stereo_skipped if recorder else 0}
+                "stereo frames not recorded (record_stereo_every)": recorder.stereo_skipped if recorder else 0,
+                "messages no service would accept (recorded up to a budget)":
+                    f"{recorder.rejected} ({recorder.rejected_skipped} not recorded)" if recorder else "0",
+                "messages not recorded, writer behind": recorder.backlog_skipped if recorder else 0}
     from deploy.report import write_report  # matplotlib only when a report is written
     write_report(out / "report.html", sc, exp.truth_path, series, summary, run_info, disturbance,
                  {t: np.asarray(v.v_mps) for t, v in exp.schedules.items()}, route=exp.path)

@@ -2,6 +2,9 @@
 
 The Zenoh callback only enqueues; a writer thread owns the file. `close()` always finishes the
 file (an unfinished MCAP cannot be opened by indexed readers), so call it in a `finally`.
+Traffic that no service would accept (a key the project does not use, a payload its message type
+rejects) is kept only up to a budget, enough to see what it was: a flood of garbage must not fill the
+disk. The same holds for a backlog the writer cannot keep up with.
 """
 from __future__ import annotations
 
@@ -15,10 +18,14 @@ import zenoh
 from mcap.writer import Writer
 
 from common import keys
-from common.codec import encode
+from common.codec import DecodeError, decode, encode
 from common.messages import AliveEvent
 
 log = logging.getLogger(__name__)
+
+REJECTED_KEEP_MESSAGES = 200          # of traffic no service would accept, this much is recorded ...
+REJECTED_KEEP_BYTES = 1 << 20         # ... and at most this many bytes of it
+MAX_BACKLOG = 200_000                 # messages waiting for the writer; beyond, new ones are counted, not kept
 
 
 class McapRecorder:
@@ -28,6 +35,10 @@ class McapRecorder:
         self.path = Path(path)
         self.stereo_every = max(int(stereo_every), 1)
         self.stereo_skipped = 0
+        self.rejected = 0              # published messages no service would accept
+        self.rejected_skipped = 0      # ... of which not recorded (over the budget)
+        self.backlog_skipped = 0       # not recorded because the writer was too far behind
+        self._rejected_bytes = 0
         self._stereo_seen: dict[str, int] = {}
         self._fh = open(self.path, "wb")
         self._writer = Writer(self._fh)
@@ -50,16 +61,19 @@ class McapRecorder:
             if n % self.stereo_every:
                 self.stereo_skipped += 1
                 return
-        self._queue.put((key, sample.payload.to_bytes(), time.time_ns()))
+        if self._queue.qsize() >= MAX_BACKLOG:
+            self.backlog_skipped += 1
+            return
+        self._queue.put((key, sample.payload.to_bytes(), time.time_ns(), True))
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         t = time.time_ns()
         event = AliveEvent(stamp_s=t * 1e-9, alive=sample.kind == zenoh.SampleKind.PUT)
-        self._queue.put((str(sample.key_expr), encode(event), t))
+        self._queue.put((str(sample.key_expr), encode(event), t, False))
 
     def record(self, key: str, data: bytes) -> None:
         """Add a message that did not travel as a publication (e.g. a control request)."""
-        self._queue.put((key, data, time.time_ns()))
+        self._queue.put((key, data, time.time_ns(), False))
 
     def _channel(self, key: str) -> int:
         ch = self._channels.get(key)
@@ -79,7 +93,13 @@ class McapRecorder:
             item = self._queue.get()
             if item is None:
                 return
-            key, data, t_ns = item
+            key, data, t_ns, published = item
+            if published and not self._acceptable(key, data):
+                self.rejected += 1
+                if self.rejected > REJECTED_KEEP_MESSAGES or self._rejected_bytes + len(data) > REJECTED_KEEP_BYTES:
+                    self.rejected_skipped += 1
+                    continue
+                self._rejected_bytes += len(data)
             try:
                 ch = self._channel(key)
                 seq = self._seq.get(key, 0)
@@ -89,6 +109,17 @@ class McapRecorder:
             except Exception:  # keep recording the rest
                 log.exception("cannot record message on %s", key)
 
+    @staticmethod
+    def _acceptable(key: str, data: bytes) -> bool:
+        cls = keys.message_type(key)
+        if cls is None:
+            return False
+        try:
+            decode(cls, data)
+        except DecodeError:
+            return False
+        return True
+
     def close(self) -> None:
         for sub in (self._sub, self._alive):
             try:
@@ -97,6 +128,9 @@ class McapRecorder:
                 pass
         self._queue.put(None)
         self._thread.join(timeout=30)
+        if self.rejected_skipped or self.backlog_skipped:
+            log.warning("recorder: %d messages no service would accept (%d of them not recorded), %d not recorded "
+                        "because the writer fell behind", self.rejected, self.rejected_skipped, self.backlog_skipped)
         try:
             self._writer.finish()
         finally:

@@ -37,12 +37,14 @@ def ctrl_c_reaches_child() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def wait_until(predicate, timeout_s: float, what: str) -> None:
-    """Wait for a condition that an event outside our control makes true (e.g. a log line)."""
+def wait_until(predicate, timeout_s: float, what: str, state=None) -> None:
+    """Wait for a condition that an event outside our control makes true (e.g. a log line); `state`
+    says, on a time-out, where things stood."""
     deadline = time.monotonic() + timeout_s
     while not predicate():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}"
+                                 + (f" ({state()})" if state else ""))
         time.sleep(0.05)
 
 

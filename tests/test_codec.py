@@ -134,6 +134,26 @@ def test_rejects_invalid_nested_values():
         decode(m.ExperienceWindow, _tampered(win, a_f64=b"\x00" * 64 + b"\x00\x00\x00\x00\x00\x00\xf8\x7f"))
 
 
+def test_a_flood_on_many_keys_neither_floods_the_log_nor_grows_the_counters(caplog):
+    now = [0.0]
+    dec = Decoder(logging.getLogger("test"), window_s=5.0, burst=3, total_burst=20, max_keys=100,
+                  clock=lambda: now[0])
+    with caplog.at_level(logging.WARNING):
+        for i in range(20_000):                      # unique keys: a per-key limit alone would log them all
+            assert dec(m.Clock, b"\xc1", f"lbc/r/junk/{i}") is None
+        for _ in range(50):
+            dec(m.Clock, b"\xc1", "lbc/r/clock")
+        lines = caplog.records[:]
+        now[0] = 6.0                                 # the next window: a summary of what was not logged
+        dec(m.Clock, b"\xc1", "lbc/r/clock")
+    assert dec.rejected_total == 20_051
+    assert len(dec.rejected) == 101 and dec.rejected[Decoder.OTHER_KEYS] == 20_000 + 51 - 100
+    assert len(lines) == 20 + 1                      # 20 reasons and one "logging at most" line
+    summary = [r.getMessage() for r in caplog.records[len(lines):]]
+    assert summary[0].startswith("20030 rejected messages not logged in the last 5 s")
+    assert "rejected message on lbc/r/clock" in summary[1]   # a fresh window logs again
+
+
 def test_encode_refuses_oversized_message():
     big = m.RouteMsg(path_id="p", loop=False, vertex_spacing_m=0.25, x_m=[0.0] * 800_000, y_m=[0.0] * 800_000,
                      theta_rad=[0.0] * 800_000, taught_by="", stamp_s=0.0)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from common import keys
-from common.bus import Node, query_one
+from common.bus import Node, query, query_one
 from common.codec import decode, encode
 from common.config import dump_toml
 from common.messages import Experience, ExperienceAck, ExperienceBatch, ExperienceWindow, HyperMsg
@@ -140,6 +140,22 @@ def test_bad_experiences_are_rejected_with_a_reason(rig):
     assert "unknown route 'nope'" in rejected[0].reason and "beyond the 400 vertices" in rejected[0].reason
     log = rig.log()
     assert "rejected message on lbc/r1/experience" in log and "must be finite" in log and "must hold 3 values" in log
+    assert rig.launcher.exited() == []
+
+
+def test_window_queries_out_of_range_are_answered_with_a_reason(rig):
+    bad = {"vertex=1e30&speed=0.5": "vertex must be a whole number", "vertex=10000000000000000000000&speed=0.5":
+           "vertex must be a whole number", "vertex=-1&speed=0.5": "vertex must be", "vertex=3&speed=1e308":
+           "speed must be a number", "vertex=3&speed=nan": "speed must be", "vertex=3&speed=inf": "speed must be",
+           "vertex=3&speed=0.5&c_vertex=99999999999": "c_vertex must be", "vertex=3&speed=0.5&c_velocity=-2":
+           "c_velocity must be"}
+    for params, reason in bad.items():
+        replies = query(rig.node.session, f"{keys.store_window('dur')}?{params}", timeout_s=10)
+        assert len(replies) == 1 and replies[0].error is not None and reason in replies[0].error, (params, replies)
+    ok = query(rig.node.session, f"{keys.store_window('dur')}?vertex=3&speed=0.5", timeout_s=10)
+    assert ok and ok[0].error is None
+    log = rig.log()
+    assert "Traceback" not in log and "store error" not in log
     assert rig.launcher.exited() == []
 
 

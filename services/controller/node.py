@@ -268,9 +268,8 @@ class ControllerService(Service):
         if not isinstance(msg, LocState) or self.core is None or msg.trial != self.trial:
             return
         if msg.path_id != self.path_id or msg.vertex >= len(self.core.path):
-            self.node.decoder.rejected[key] += 1
-            self.log.warning("ignoring an estimate for route %s vertex %d while tracking %s (%d vertices)",
-                             msg.path_id, msg.vertex, self.path_id, len(self.core.path))
+            self.node.decoder.reject(key, f"an estimate for route {msg.path_id} vertex {msg.vertex} while tracking "
+                                          f"{self.path_id} ({len(self.core.path)} vertices)")
             return
         self.latest_loc = msg
         if self.cfg.clock_mode == "lockstep":

@@ -21,11 +21,10 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
 import zenoh
 
 from common import keys
-from common.bus import Node, query_one, query_params
+from common.bus import Node, float_param, int_param, query_one, query_params
 from common.codec import DecodeError, encode
 from common.lifecycle import die_with_parent
 from common.messages import (ExperienceAck, ExperienceBatch, ExperienceWindow, RouteMsg, StoreStats, TrialEvent,
@@ -37,6 +36,10 @@ from services.gp_store.db import ExperienceDB
 from services.gp_store.fitting import FitResult, fit_route
 
 DUMP_CHUNK = 2000
+# window queries beyond these are malformed, not large: no route has 10 million vertices, no robot 1000 m/s
+MAX_VERTEX = 10_000_000
+MAX_SPEED_MPS = 1000.0
+MAX_SPEED_BINS = 100_000
 
 
 @dataclass
@@ -166,17 +169,14 @@ class StoreService(Service):
             params = query_params(query)
             if "vertex" not in params or "speed" not in params:
                 raise ValueError("window queries need vertex=<i> and speed=<m/s>")
-            vertex = int(params["vertex"])
-            speed = float(params["speed"])
-            if not np.isfinite(speed) or vertex < 0:
-                raise ValueError("vertex must be >= 0 and speed finite")
-            cv = params.get("c_vertex")
-            cl = params.get("c_velocity")
+            vertex = int_param(params, "vertex", 0, MAX_VERTEX)
+            speed = float_param(params, "speed", -MAX_SPEED_MPS, MAX_SPEED_MPS)
+            cv = int_param(params, "c_vertex", 0, MAX_VERTEX)
+            cl = int_param(params, "c_velocity", 0, MAX_SPEED_BINS)
             model = params.get("model")           # the asking controller's nominal model (db.py); none given:
             if model:                               # the route's current one
                 check_name("model", model)
-            w = self.db.window(path_id, vertex, speed, None if cv is None else int(cv), None if cl is None else int(cl),
-                               model=model)
+            w = self.db.window(path_id, vertex, speed, cv, cl, model=model)
             query.reply(keys.store_window(path_id), encode(ExperienceWindow(
                 stamp_s=time.time(), path_id=path_id, vertex_lo=w.vertex_lo, vertex_hi=w.vertex_hi, bin_lo=w.bin_lo,
                 bin_hi=w.bin_hi, v_bin_mps=self.policy.v_bin_mps, vertices=w.vertices.tolist(),
