@@ -3,7 +3,8 @@
 ExperienceOutbox: at-least-once delivery. Every experience keeps a per-producer seq and stays pending
 until a store acknowledges it (after its durable commit); what is not acknowledged within
 `resend_after_s` is sent again (the store stores a (source, seq) once). A store that is down simply
-means a growing outbox, capped, never a blocked control loop.
+means a growing outbox, capped, never a blocked control loop. With a journal (outbox_journal.py) the
+pending experiences are on disk too, and a producer restarted after a crash sends them again.
 
 WindowCache: the local windows and hyperparameters the real-time loop reads, from memory only. Two modes:
 - prefetch (realtime clock): a background thread keeps the windows ahead of the robot fetched and a
@@ -18,6 +19,7 @@ WindowCache: the local windows and hyperparameters the real-time loop reads, fro
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 import uuid
@@ -32,13 +34,17 @@ from common import keys
 from common.bus import Node
 from common.codec import DecodeError, decode
 from common.messages import (A_DIM, G_DIM, Experience, ExperienceAck, ExperienceBatch, ExperienceWindow, HyperMsg)
+from common.outbox_journal import OutboxJournal
 
 log = logging.getLogger(__name__)
 
 
 class ExperienceOutbox:
     def __init__(self, node: Node, robot: str, *, resend_after_s: float = 2.0, max_pending: int = 200_000,
-                 max_batch: int = 500, source: str | None = None, model: str = ""):
+                 max_batch: int = 500, source: str | None = None, model: str = "",
+                 journal: OutboxJournal | None = None):
+        """`journal`: keep pending experiences on disk too (outbox_journal.py); its source id and sequence
+        numbers are then this outbox's, and what it held from before is sent again at the first flush."""
         self.node = node
         self.robot = robot
         self.model = model            # the nominal model `add`'s experiences are residuals of
@@ -50,6 +56,13 @@ class ExperienceOutbox:
         self._pending: OrderedDict[int, tuple[Experience, float]] = OrderedDict()   # seq -> (exp, last sent)
         self._new: list[Experience] = []
         self._seq = 0
+        self.journal = journal
+        self.recovered = 0
+        if journal is not None:
+            rec = journal.recovered
+            self.source, self._seq, self.recovered = rec.source, rec.next_seq, len(rec.pending)
+            for exp in rec.pending:
+                self._pending[exp.seq] = (exp, -math.inf)
         self.acked = 0
         self.rejected = 0
         self.dropped = 0
@@ -59,13 +72,18 @@ class ExperienceOutbox:
     def _on_ack(self, ack: ExperienceAck, _key: str) -> None:
         if ack.source != self.source:
             return
+        done = []
         with self._lock:
             for seq in ack.seqs:
                 if self._pending.pop(seq, None) is not None:
                     self.acked += 1
+                    done.append(seq)
             for seq in ack.rejected:   # a store refused these: re-sending would not help
                 if self._pending.pop(seq, None) is not None:
                     self.rejected += 1
+                    done.append(seq)
+            if self.journal is not None:
+                self.journal.removed(done)
             self._lock.notify_all()
         if ack.rejected:
             log.warning("store %s rejected %d experiences: %s", ack.store, len(ack.rejected), ack.reason)
@@ -106,10 +124,15 @@ class ExperienceOutbox:
             for exp in stale:
                 self._pending[exp.seq] = (exp, now)
                 self._pending.move_to_end(exp.seq)
+            if self.journal is not None:      # before they go out: an acknowledgement must find them there
+                self.journal.added(out)
             out = out + stale
+            gone = []
             while len(self._pending) > self.max_pending:   # store gone for very long: keep the newest
-                self._pending.popitem(last=False)
+                gone.append(self._pending.popitem(last=False)[0])
                 self.dropped += 1
+            if self.journal is not None:
+                self.journal.removed(gone)
         for i in range(0, len(out), self.max_batch):
             # droppable: called from the control loop, which must never wait on a congested link;
             # a dropped batch is simply re-sent when its acknowledgement does not come

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import signal
 import sqlite3
+import subprocess
+import sys
 import threading
+from pathlib import Path as FsPath
 
 import msgpack
 import numpy as np
@@ -16,6 +19,7 @@ from common.codec import decode, encode
 from common.config import dump_toml
 from common.messages import Experience, ExperienceAck, ExperienceBatch, ExperienceWindow, HyperMsg
 from common.path import Path
+from common.outbox_journal import OutboxJournal
 from common.store_client import ExperienceOutbox, WindowCache
 from deploy.launcher import Launcher
 from deploy.router import free_port
@@ -26,6 +30,7 @@ from services.localizer.routes import RouteStore
 from tests.conftest import wait_until
 
 pytestmark = pytest.mark.integration
+ROOT = FsPath(__file__).resolve().parents[1]
 N_VERTICES = 400
 
 
@@ -102,6 +107,52 @@ def test_sigkill_during_ingestion_loses_no_acknowledged_experience(rig):
     (max_in_bin,) = db.execute("SELECT MAX(n) FROM (SELECT COUNT(*) n FROM experiences GROUP BY path_id, vertex, "
                                "speed_bin)").fetchone()
     assert max_in_bin <= rig.store_cfg.bins.c_bin
+
+
+# a producer that queues experiences while no store is up and is then killed outright
+_PRODUCER = """
+import os, signal, sys
+from common.bus import Node
+from common.outbox_journal import OutboxJournal
+from common.store_client import ExperienceOutbox
+from tests.test_store_service import unique_bin_experience
+node = Node("producer", "r1", sys.argv[1])
+outbox = ExperienceOutbox(node, "r1", journal=OutboxJournal(sys.argv[2], "r1"))
+for i in range(int(sys.argv[3])):
+    unique_bin_experience(outbox, i)
+    if i % 50 == 49:
+        outbox.flush()
+outbox.flush()
+assert outbox.journal.sync(30)
+print(outbox.source, outbox.acked, flush=True)
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_experiences_queued_by_a_producer_that_dies_are_sent_by_its_successor(rig, tmp_path):
+    """The link to the store is down (the store is stopped), the producer queues 800 experiences and is
+    killed; the store comes back and a new producer on the same journal sends every one, once."""
+    rig.launcher.kill("gp_store", signal.SIGKILL)
+    wait_until(lambda: rig.launcher.exited(), 10, "the store to die")
+    journal_path, total = tmp_path / "outbox.db", 800
+    child = subprocess.run([sys.executable, "-c", _PRODUCER, rig.endpoint, str(journal_path), str(total)],
+                           capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert child.returncode == -signal.SIGKILL, child.stderr
+    source, acked = child.stdout.split()
+    assert acked == "0"
+    rig.start_store()
+    journal = OutboxJournal(journal_path, "r1")
+    outbox = ExperienceOutbox(rig.node, "r1", resend_after_s=1.0, journal=journal)
+    assert outbox.source == source and outbox.recovered == total
+    unique_bin_experience(outbox, total)             # numbered after the dead producer's
+    assert outbox.wait_acked(60), f"{outbox.pending} experiences never acknowledged"
+    assert journal.sync(10)
+    journal.close()
+    assert OutboxJournal(journal_path, "r1").recovered.pending == []
+    rig.launcher.stop()
+    db = sqlite3.connect(rig.store_cfg.db_path)
+    stored = sorted(s for (s,) in db.execute("SELECT seq FROM experiences WHERE source=?", (source,)))
+    assert stored == list(range(total + 1))
 
 
 def test_crowded_bins_respect_c_bin_after_a_crash(rig):

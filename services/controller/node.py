@@ -22,9 +22,10 @@ from common.messages import (NAME_RE, BridgeStatus, Clock, ControllerStatus, Cor
                              RouteMsg, SpeedSchedule, VelocityCommand)
 from common.path import Path
 from common.service import Control, Service, service_main
+from common.outbox_journal import OutboxJournal
 from common.store_client import ExperienceOutbox, WindowCache
 from services.controller.calibration import SpreadCalibration
-from services.controller.config import ControllerConfig
+from services.controller.config import ControllerConfig, StoreClientConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
 from services.controller.ilc import ILCMemory
@@ -76,8 +77,7 @@ class ControllerService(Service):
         st = cfg.store
         # experiences are residuals of the trial's nominal model, and only its own are learned from
         self.model_tag = cfg.nmpc.lag(cfg.period_s).model_tag
-        self.outbox = ExperienceOutbox(node, r, resend_after_s=st.resend_after_s,
-                                       model=self.model_tag) if st.enabled else None
+        self.outbox = self._outbox(node, r, st) if st.enabled else None
         # one snapshot of the store per trial (store_client.py): the whole route's windows are in memory
         # before the robot moves, so a link to the learning host that drops mid-trial costs nothing, and
         # in lockstep a seed gives one run
@@ -291,6 +291,8 @@ class ControllerService(Service):
             if late_s > 5 * self.cfg.period_s:
                 next_wall = time.monotonic()
             clock, _ = self.clock.get()
+            if self.core is None:
+                self.on_idle()
             if self.core is not None and clock is not None:
                 # robot time now: the newest clock tick from the bridge; an estimate is used once, after
                 # that the tracker holds (or stops) as it does through any gap in localization
@@ -374,9 +376,30 @@ class ControllerService(Service):
             learning_off_since_s=self.learning_off_since_s, learning_note=self.learning_note,
             step_late_ms=self.step_late_ms)
 
+    def _outbox(self, node: Node, robot: str, st: StoreClientConfig) -> ExperienceOutbox:
+        """Pending experiences are kept on disk too (with a data_dir): a controller that dies while the
+        learning host is unreachable sends them when it is back."""
+        journal = None
+        if self.cfg.data_dir:
+            journal = OutboxJournal(FsPath(self.cfg.data_dir) / "outbox.db", robot)
+        else:
+            self.log.warning("no data_dir: experiences not yet acknowledged by a store are kept in memory only")
+        outbox = ExperienceOutbox(node, robot, resend_after_s=st.resend_after_s, model=self.model_tag,
+                                  journal=journal)
+        if outbox.recovered:
+            self.log.info("%d experiences not acknowledged before the last stop: sending them again (source %s)",
+                          outbox.recovered, outbox.source)
+        return outbox
+
+    def on_idle(self) -> None:
+        if self.outbox is not None and self.core is None:
+            self.outbox.flush()        # between trials: re-send what no store has acknowledged yet
+
     def close(self) -> None:
         if self.cache is not None:
             self.cache.close()
+        if self.outbox is not None and self.outbox.journal is not None:
+            self.outbox.journal.close()
 
 
 def main(argv: list[str] | None = None) -> int:
