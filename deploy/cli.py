@@ -57,7 +57,8 @@ def _experiment(args) -> int:
     try:
         connect, zenoh_conf = _operator_session(args)
         run_experiment(args.scenario, args.out, connect=connect, log_level=args.log_level,
-                       overwrite=args.overwrite, connect_timeout_s=args.connect_timeout, zenoh_conf=zenoh_conf)
+                       overwrite=args.overwrite, connect_timeout_s=args.connect_timeout, zenoh_conf=zenoh_conf,
+                       **({"ready_timeout_s": args.ready_timeout} if args.ready_timeout is not None else {}))
     except (ConfigError, ExperimentError) as exc:
         _say("experiment", str(exc))
         return 2 if isinstance(exc, ConfigError) else 1
@@ -175,6 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--host", default=None, help="the manifest host to connect to, with its operator certificate")
     run.add_argument("--connect-timeout", type=float, default=30.0, metavar="S",
                      help="how long to wait for the router (default 30 s)")
+    run.add_argument("--ready-timeout", type=float, default=None, metavar="S",
+                     help="how long to wait for the services (default 60 s); against a running deployment, "
+                          "the learning host's may stay missing after that and the run goes on without them")
     run.add_argument("--overwrite", action="store_true", help="replace an earlier run in the output directory")
     add_log_level_argument(run)
     run.set_defaults(func=_experiment)

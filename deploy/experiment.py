@@ -47,6 +47,7 @@ def services_of(sc: Scenario) -> tuple[str, ...]:
     return ROBOT_SERVICES + ("gp_store",) + (("scheduler",) if sc.scheduler.enabled else ())
 
 
+READY_TIMEOUT_S = 60.0         # how long the runner waits for the services to be up
 STOPPED_ENDS_TRIAL_S = 5.0     # robot time a controller may stay stopped before the runner ends the trial
 
 
@@ -112,7 +113,7 @@ REJOIN_S = 30.0     # how long a service may be gone mid-trial (a restart, a lin
 
 class Experiment:
     def __init__(self, sc: Scenario, session, recorder: McapRecorder | None, progress: Progress,
-                 launcher: Launcher | None = None, ready_timeout_s: float = 60.0):
+                 launcher: Launcher | None = None, ready_timeout_s: float = READY_TIMEOUT_S):
         self.sc = sc
         self.session = session
         self.recorder = recorder
@@ -126,6 +127,7 @@ class Experiment:
         self.alive: set[str] = set()
         self.ready_timeout_s = ready_timeout_s
         self.teach_sim_s = self.teach_wall_s = 0.0
+        self.scheduled = False        # the trial being prepared follows the scheduler's schedule
         self.nominal_model: NominalModel | None = None
         self.decoder = Decoder(log)
         r = self.robot
@@ -196,20 +198,28 @@ class Experiment:
         return kind, data
 
     def wait_ready(self) -> None:
+        """Every service up, or, against a deployment started elsewhere, at least the robot's: with the
+        learning host unreachable the robot can still teach and repeat on its nominal model."""
         deadline = time.monotonic() + self.ready_timeout_s
         self.progress.update("waiting for services: " + ", ".join(self.services))
         while not all(s in self.alive for s in self.services):
             if time.monotonic() > deadline:
                 missing = [s for s in self.services if s not in self.alive]
-                raise ExperimentError(f"services not up within {self.ready_timeout_s:.0f} s: {missing}")
+                if self.launcher is not None or any(s in ROBOT_SERVICES for s in missing):
+                    raise ExperimentError(f"services not up within {self.ready_timeout_s:.0f} s: {missing}")
+                self.progress.line(f"warning {', '.join(missing)} not reachable (learning host down?): teaching "
+                                   "and repeating without; the controller drives on its nominal model, experiences "
+                                   "queue on the robot until a store answers")
+                break
             self._next_event(0.2)
-        self.progress.line(f"services up: {', '.join(self.services)} (robot {self.robot})")
+        up = [s for s in self.services if s in self.alive]
+        self.progress.line(f"services up: {', '.join(up)} (robot {self.robot})")
 
     def control(self, service: str, action: str, mode: str, trial: int, speed: float = 0.0,
                 max_duration_s: float = 0.0) -> ControlReply:
         req = ControlRequest(stamp_s=time.time(), action=action, mode=mode, trial=trial, path_id=self.path_id,
                              speed_mps=speed, max_duration_s=max_duration_s, learning=self.sc.trials.learning,
-                             loop=self.sc.path.loop, schedule=self.sc.scheduler.enabled and mode == "repeat")
+                             loop=self.sc.path.loop, schedule=self.scheduled and mode == "repeat")
         key = keys.control(self.robot, service)
         payload = encode(req)
         if self.recorder:
@@ -290,8 +300,12 @@ class Experiment:
         self.progress.line(f"model   {rep.detail}")
         return model
 
-    def schedule(self, trial: int) -> SpeedSchedule:
-        """The schedule the scheduler has for the route now (trial 1: v_init, made on demand)."""
+    def schedule(self, trial: int) -> SpeedSchedule | None:
+        """The schedule the scheduler has for the route now (trial 1: v_init, made on demand); None if no
+        scheduler is reachable (the trial then runs at the scenario's speed)."""
+        if "scheduler" not in self.alive:
+            self.progress.line(f"warning no scheduler reachable: trial {trial} at the scenario's fixed speed")
+            return None
         try:
             sched = query_one(self.session, keys.sched_schedule(self.path_id), SpeedSchedule, timeout_s=30.0)
         except LookupError as exc:
@@ -300,8 +314,10 @@ class Experiment:
         self.schedules[trial] = sched
         return sched
 
-    def reschedule(self, trial: int) -> SpeedSchedule:
+    def reschedule(self, trial: int) -> SpeedSchedule | None:
         """After a trial: the next schedule, from what this robot experienced (thesis 4.2.3-4.2.4)."""
+        if "scheduler" not in self.alive:
+            return None
         req = ScheduleUpdate(stamp_s=time.time(), path_id=self.path_id, robot=self.robot, trial=trial)
         try:
             sched = query_one(self.session, keys.sched_update(self.path_id), SpeedSchedule, payload=encode(req),
@@ -319,8 +335,10 @@ class Experiment:
     def repeat(self, trial: int, speed: float) -> TrialRecord:
         path = self.path
         nominal_s = path.length_m / max(speed, 1e-3)
-        if self.sc.scheduler.enabled:
-            v = np.asarray(self.schedule(trial).v_mps)
+        sched = self.schedule(trial) if self.sc.scheduler.enabled else None
+        self.scheduled = sched is not None
+        if sched is not None:
+            v = np.asarray(sched.v_mps)
             speed = float(v.mean())
             nominal_s = float(np.sum(path.segment_lengths / np.maximum(v[:-1], 1e-3)))
         limit_s = self.sc.trials.time_limit_factor * nominal_s + 10.0
@@ -400,8 +418,10 @@ class Experiment:
 
     @staticmethod
     def _gone_too_long(gone: dict[str, float]) -> str | None:
+        """A robot service that has not come back: the trial cannot go on. The learning host's services
+        may stay away: the controller drives on what it has, the experiences queue on the robot."""
         now = time.monotonic()
-        return next((name for name, t in gone.items() if now - t > REJOIN_S), None)
+        return next((name for name, t in gone.items() if name in ROBOT_SERVICES and now - t > REJOIN_S), None)
 
     def _late_statuses(self, rec: TrialRecord) -> None:
         """The controller's answers to the last stepped ticks may reach the runner after the bridge's end
@@ -427,6 +447,9 @@ class Experiment:
         hyperparameters offline (thesis 5.2.3) and wait for them. Returns (hyperparameters,
         experiences ingested on this route so far)."""
         rep = self.control("controller", "stop", "repeat", trial)
+        if "gp_store" not in self.alive:
+            self.progress.line(f"learn   no store reachable after trial {trial} ({rep.detail}): nothing fitted")
+            return None, 0
         self.progress.update(f"learn   {rep.detail}; fitting GP hyperparameters ...")
         t0 = time.monotonic()
         try:
@@ -573,7 +596,8 @@ def _run_trials(sc: Scenario, exp: Experiment, out: FsPath, summary: dict, recor
 
 def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: str | None = None,
                    progress_stream: TextIO = sys.stderr, log_level: str = "INFO", overwrite: bool = False,
-                   connect_timeout_s: float = 30.0, zenoh_conf: str | dict | None = None) -> dict:
+                   connect_timeout_s: float = 30.0, zenoh_conf: str | dict | None = None,
+                   ready_timeout_s: float = READY_TIMEOUT_S) -> dict:
     """Run a whole experiment; returns the summary (also written to out_dir/summary.json). With
     `connect`, against a running deployment; `zenoh_conf` then holds the runner's certificate."""
     t_start = time.monotonic()
@@ -589,7 +613,7 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
     try:
         session = _connect(endpoint, launcher, connect_timeout_s, zenoh_conf)
         recorder = McapRecorder(out / "run.mcap", session, stereo_every=sc.localization.record_stereo_every)
-        exp = Experiment(sc, session, recorder, progress, launcher)
+        exp = Experiment(sc, session, recorder, progress, launcher, ready_timeout_s=ready_timeout_s)
         exp.wait_ready()
         exp.teach()
         summary["identified_model"] = to_dict(exp.nominal_model)

@@ -58,9 +58,10 @@ def net():
 
 
 @contextmanager
-def deployed(net: TwoHosts, base: Path, scenario: dict, delay_ms: float = 0.0, port: int = 7447):
-    """`lbc launch --manifest ... --host` on each host, until the block ends (Ctrl-C to each); with a
-    delay, the robot's router reaches the learning host's through the delay proxy."""
+def deployed(net: TwoHosts, base: Path, scenario: dict, delay_ms: float = 0.0, port: int = 7447,
+             hosts: tuple[str, ...] = ("learning", "robot")):
+    """`lbc launch --manifest ... --host` on each of `hosts`, until the block ends (Ctrl-C to each); with
+    a delay, the robot's router reaches the learning host's through the delay proxy."""
     manifest = write_deployment(net, base, scenario, 7448 if delay_ms else None, port)
     launches = {}
     proxy = None
@@ -70,7 +71,7 @@ def deployed(net: TwoHosts, base: Path, scenario: dict, delay_ms: float = 0.0, p
             proxy = subprocess.Popen([*net.prefix("learning"), sys.executable, "-m", "deploy.delay_proxy",
                                       "--listen", f"{a}:7448", "--to", f"{a}:7447", "--delay-ms", str(delay_ms)],
                                      cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        for host in ("learning", "robot"):
+        for host in hosts:
             launches[host] = Running("launch", "--manifest", str(manifest), "--host", host,
                                      "--dir", str(base / host), prefix=net.prefix(host))
         for host, launch in launches.items():
@@ -178,3 +179,34 @@ def test_the_link_to_the_learning_host_drops_for_20_s_mid_trial(net, tmp_path):
     # the route equals what the runner saw published, trial by trial
     assert second["experiences_total"] == sum(t["experiences_trial"] for t in trials) > 0
     assert second["deadline_misses"] == 0 and second["period_jitter_ms_p99"] < 50.0
+
+
+def test_the_robot_host_alone_teaches_and_repeats_and_learns_once_the_learning_host_is_up(net, tmp_path):
+    """The learning host is down when the experiment starts: the robot host teaches and runs trial 1 on
+    its nominal model at the scenario's speed (no scheduler), its experiences queued; the learning host
+    comes up after trial 1: every queued experience is stored and fitted on, nothing restarted by hand."""
+    scenario = dict(REALTIME, name="alone", scheduler={"enabled": True}, trials={"count": 3, "speed": 0.8})
+    with deployed(net, tmp_path, scenario, port=7467, hosts=("robot",)) as manifest:
+        run = Running("experiment", "run", str(tmp_path / "scenario.toml"), "--out", str(tmp_path / "out"),
+                      "--manifest", str(manifest), "--host", "robot", "--ready-timeout", "10",
+                      prefix=net.prefix("robot"))
+        learning = None
+        try:
+            assert run.wait_for("trial  1/3", 300.0), "".join(filter(None, run.lines))
+            learning = Running("launch", "--manifest", str(manifest), "--host", "learning", "--dir",
+                               str(tmp_path / "learning"), prefix=net.prefix("learning"))
+            rc, err = run.finish(600.0)
+        finally:
+            run.kill()
+            if learning is not None:
+                learning.proc.send_signal(signal.SIGINT)
+                learning.finish(30.0)
+    assert rc == 0, err[-3000:]
+    assert "not reachable (learning host down?)" in err and "no store reachable after trial 1" in err, err[-3000:]
+    trials = json.loads((tmp_path / "out" / "summary.json").read_text())["trials"]
+    assert [t["completed"] for t in trials] == [True, True, True], err[-3000:]
+    assert "schedule_version" not in trials[0] and trials[0]["experiences_fit_used"] is None
+    # by the end the store has every experience of every trial, trial 1's queued ones included, once
+    last = trials[-1]
+    assert last["experiences_total"] == sum(t["experiences_trial"] for t in trials) > 0, err[-3000:]
+    assert last["experiences_fit_used"] > 0

@@ -281,14 +281,21 @@ class ControllerService(Service):
         next_wall = time.monotonic()
         while not stop.is_set():
             next_wall += self.cfg.period_s
+            resync = False
             while (left := next_wall - time.monotonic()) > 0:
                 try:
-                    self.dispatch(*self.inbox.get(timeout=left))
+                    key, item = self.inbox.get(timeout=left)
                 except queue.Empty:
                     break
-            late_s = time.monotonic() - next_wall
+                self.dispatch(key, item)
+                # a control request (prepare: the route, the law, the store's snapshot) is a change of
+                # phase, not a step: the period starts afresh after it rather than counting as late
+                resync = resync or key == "__control__"
+            late_s = 0.0 if resync else time.monotonic() - next_wall
             self.step_late_ms = max(0.0, late_s) * 1e3
-            if late_s > 5 * self.cfg.period_s:
+            if resync or late_s > self.cfg.period_s:
+                # a step that missed its period is taken now and the grid restarts from it: the missed
+                # ones are not made up back to back (each would act on the same robot time)
                 next_wall = time.monotonic()
             clock, _ = self.clock.get()
             if self.core is None:
