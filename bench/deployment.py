@@ -5,11 +5,14 @@ controller, the learning host the store and the scheduler; each is started by `l
 --host` with mutual TLS and access control, and the robot's router reaches the learning host's through
 a delay proxy (`--delay-ms` one way). Then, in order:
 1. the store query round trip from the robot host, halved: `one_way_latency_ms`;
-2. a realtime experiment whose link is pulled for `--link-down-s` once trial 2 is under way:
-   `deadline_misses` (all trials), `period_jitter_ms_p99` (worst trial), `experiences_produced` (what
-   the runner saw published) and `experiences_acked` (what the store ingested);
-3. the learning host's router killed (its launcher restarts it): `router_restart_recover_s`, until the
-   store answers the robot host again;
+2. a realtime experiment: the robot host's router is killed `--robot-router-kill-after-s` into trial 1
+   (its launcher restarts it; `router_restart_recover_s_robot` until the robot's services and the store
+   are reachable again, `trial_1_end_reason` what became of the trial), and the link is pulled for
+   `--link-down-s` once trial 2 is under way: `deadline_misses` (all trials), `period_jitter_ms_p99`
+   (worst trial), `experiences_produced` (what the runner saw published) and `experiences_acked` (what
+   the store ingested);
+3. the learning host's router killed: `router_restart_recover_s_learning`, until the store answers the
+   robot host again (`router_restart_recover_s`: the slower of the two);
 4. `lbc deploy check` from each host: `rogue_puts_delivered` (puts and control requests that got through
    to certificates not entitled to them) and `unauthenticated_connect_refused`.
 """
@@ -33,6 +36,7 @@ from common.bus import open_session, query, setup_logging
 from common.scenario import parse_scenario
 from deploy import access
 from deploy.certs import OPERATOR, make_certs
+from deploy.experiment import ROBOT_SERVICES
 from deploy.manifest import load_manifest
 from deploy.netns import NetnsUnavailable, TwoHosts
 
@@ -84,14 +88,28 @@ def run_probe(what: str, manifest_path: str) -> int:
                     rtts.append((time.monotonic() - t) * 1e3)
             out = {"rtt_ms_p50": statistics.median(rtts) if rtts else None, "n": len(rtts)}
         else:
-            while not query(s, keys.store_stats(), timeout_s=1.0):
+            # the store answers the robot host again; after the robot's router: its services are back too
+            robot = ROBOT_SERVICES if what == "robot-back" else ()
+            while not (query(s, keys.store_stats(), timeout_s=1.0) and all(
+                    any(r.ok is not None for r in s.liveliness().get(keys.alive("r1", name), timeout=1.0))
+                    for name in robot)):
                 if time.monotonic() - t0 > 60.0:
-                    raise TimeoutError("the store did not answer within 60 s")
+                    raise TimeoutError("the deployment did not come back within 60 s")
             out = {"back_after_s": time.monotonic() - t0}
     finally:
         s.close()
     print(json.dumps(out))
     return 0
+
+
+def _kill_router(base: Path, host: str) -> None:
+    """SIGKILL a host's router (its launcher restarts it)."""
+    pids = subprocess.run(["pgrep", "-f", str(base / host / "zenoh" / "router.json5")], capture_output=True,
+                          text=True).stdout.split()
+    if not pids:
+        raise RuntimeError(f"no router process of host {host}")
+    for pid in pids:
+        os.kill(int(pid), signal.SIGKILL)
 
 
 def _write(base: Path, net: TwoHosts) -> Path:
@@ -134,6 +152,11 @@ def run_bench(args) -> dict:
                                         str(base / "out"), "--manifest", str(manifest), "--host", "robot"],
                          base / "experiment.log")
             procs.append(exp)
+            _wait_text(base / "robot" / "logs" / "controller.log", "prepare/repeat trial 1: ok", 600.0, exp)
+            time.sleep(args.robot_router_kill_after_s)      # into trial 1, the robot moving
+            log.info("killing the robot host's router in trial 1")
+            _kill_router(base, "robot")
+            robot_recover = _probe(net, manifest, "robot-back")["back_after_s"]
             _wait_text(base / "robot" / "logs" / "controller.log", "trial 2: store snapshot", 600.0, exp)
             net.link(False)
             time.sleep(args.link_down_s)       # the outage itself
@@ -142,10 +165,7 @@ def run_bench(args) -> dict:
                 raise RuntimeError(f"the experiment failed: {(base / 'experiment.log').read_text()[-3000:]}")
             trials = json.loads((base / "out" / "summary.json").read_text())["trials"]
             log.info("killing the learning host's router")
-            router = subprocess.run(["pgrep", "-f", str(base / "learning" / "zenoh" / "router.json5")],
-                                    capture_output=True, text=True).stdout.split()
-            for pid in router:
-                os.kill(int(pid), signal.SIGKILL)
+            _kill_router(base, "learning")
             recover = _probe(net, manifest, "back")["back_after_s"]
             checks = []
             for host in ("robot", "learning"):
@@ -168,7 +188,9 @@ def run_bench(args) -> dict:
             "link_down_s": args.link_down_s,
             "experiences_produced": sum(t["experiences_trial"] for t in trials),
             "experiences_acked": trials[-1]["experiences_total"],
-            "router_restart_recover_s": recover,
+            "router_restart_recover_s": max(recover, robot_recover),
+            "router_restart_recover_s_learning": recover, "router_restart_recover_s_robot": robot_recover,
+            "trial_1_end_reason": trials[0].get("end_reason", ""),
             "rogue_puts_delivered": sum(c["rogue_puts_delivered"] + c["rogue_control_replies"] for c in checks),
             "unauthenticated_connect_refused": all(c["unauthenticated_connect_refused"] for c in checks),
             "trials_completed": sum(bool(t["completed"]) for t in trials), "trials": len(trials),
@@ -178,6 +200,8 @@ def run_bench(args) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="lbc bench deployment", description=__doc__.splitlines()[0])
     parser.add_argument("--delay-ms", type=float, default=50.0, help="one-way delay between the routers")
+    parser.add_argument("--robot-router-kill-after-s", type=float, default=8.0,
+                        help="how far into trial 1 the robot host's router is killed")
     parser.add_argument("--link-down-s", type=float, default=20.0, help="how long the link is pulled in trial 2")
     parser.add_argument("--log-level", default="INFO")
     parser.add_argument("--probe", choices=("rtt", "back"), help=argparse.SUPPRESS)

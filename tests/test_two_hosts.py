@@ -192,7 +192,7 @@ def test_the_robot_host_alone_teaches_and_repeats_and_learns_once_the_learning_h
                       prefix=net.prefix("robot"))
         learning = None
         try:
-            assert run.wait_for("trial  1/3", 300.0), "".join(filter(None, run.lines))
+            assert run.wait_for("trial  1/3 done", 300.0), "".join(filter(None, run.lines))
             learning = Running("launch", "--manifest", str(manifest), "--host", "learning", "--dir",
                                str(tmp_path / "learning"), prefix=net.prefix("learning"))
             rc, err = run.finish(600.0)
