@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="how far into trial 1 the robot host's router is killed")
     parser.add_argument("--link-down-s", type=float, default=20.0, help="how long the link is pulled in trial 2")
     parser.add_argument("--log-level", default="INFO")
-    parser.add_argument("--probe", choices=("rtt", "back"), help=argparse.SUPPRESS)
+    parser.add_argument("--probe", choices=("rtt", "back", "robot-back"), help=argparse.SUPPRESS)
     parser.add_argument("--manifest", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     setup_logging("bench", args.log_level)
