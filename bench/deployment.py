@@ -13,8 +13,9 @@ a delay proxy (`--delay-ms` one way). Then, in order:
    the store ingested);
 3. the learning host's router killed: `router_restart_recover_s_learning`, until the store answers the
    robot host again (`router_restart_recover_s`: the slower of the two);
-4. `lbc deploy check` from each host: `rogue_puts_delivered` (puts and control requests that got through
-   to certificates not entitled to them) and `unauthenticated_connect_refused`.
+4. `lbc deploy check` from the robot host during trial 1 and from the learning host during trial 2
+   (rogue sessions mid-trial): `rogue_puts_delivered` (puts and control requests that got through to
+   certificates not entitled to them) and `unauthenticated_connect_refused`.
 """
 from __future__ import annotations
 
@@ -102,7 +103,17 @@ def run_probe(what: str, manifest_path: str) -> int:
     return 0
 
 
-def _kill_router(base: Path, host: str) -> None:
+def _deploy_check(net: TwoHosts, manifest: Path, host: str) -> dict:
+    """`lbc deploy check` from a host: every certificate there against what it is not entitled to."""
+    r = subprocess.run([*net.prefix(host), sys.executable, "-m", "deploy.cli", "deploy", "check", "--manifest",
+                        str(manifest), "--host", host], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                       env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    if r.returncode not in (0, 1) or not r.stdout.strip():
+        raise RuntimeError(f"deploy check on {host} failed: {r.stderr[-2000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def kill_router(base: Path, host: str) -> None:
     """SIGKILL a host's router (its launcher restarts it)."""
     pids = subprocess.run(["pgrep", "-f", str(base / host / "zenoh" / "router.json5")], capture_output=True,
                           text=True).stdout.split()
@@ -155,24 +166,21 @@ def run_bench(args) -> dict:
             _wait_text(base / "robot" / "logs" / "controller.log", "prepare/repeat trial 1: ok", 600.0, exp)
             time.sleep(args.robot_router_kill_after_s)      # into trial 1, the robot moving
             log.info("killing the robot host's router in trial 1")
-            _kill_router(base, "robot")
+            kill_router(base, "robot")
             robot_recover = _probe(net, manifest, "robot-back")["back_after_s"]
+            # rogue sessions from the robot host while trial 1 goes on: they must change nothing
+            checks = [_deploy_check(net, manifest, "robot")]
             _wait_text(base / "robot" / "logs" / "controller.log", "trial 2: store snapshot", 600.0, exp)
             net.link(False)
             time.sleep(args.link_down_s)       # the outage itself
             net.link(True)
+            checks.append(_deploy_check(net, manifest, "learning"))      # ... and from the learning host
             if exp.wait(timeout=600) != 0:
                 raise RuntimeError(f"the experiment failed: {(base / 'experiment.log').read_text()[-3000:]}")
             trials = json.loads((base / "out" / "summary.json").read_text())["trials"]
             log.info("killing the learning host's router")
-            _kill_router(base, "learning")
+            kill_router(base, "learning")
             recover = _probe(net, manifest, "back")["back_after_s"]
-            checks = []
-            for host in ("robot", "learning"):
-                r = subprocess.run([*net.prefix(host), sys.executable, "-m", "deploy.cli", "deploy", "check",
-                                    "--manifest", str(manifest), "--host", host], cwd=ROOT, capture_output=True,
-                                   text=True, timeout=300, env=dict(os.environ, PYTHONPATH=str(ROOT)))
-                checks.append(json.loads(r.stdout.strip().splitlines()[-1]))
     finally:
         for p in reversed(procs):
             if p.poll() is None:

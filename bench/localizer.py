@@ -16,6 +16,7 @@ import logging
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -90,10 +91,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--source", choices=("sim", "kitti"), default="sim")
     parser.add_argument("--repeats", type=int, default=3, help="kitti: passes over the sequence")
     parser.add_argument("--speed", type=float, default=0.5, help="sim: driving speed (m/s), sets the blur")
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="kitti: a folder of the KITTI layout (calib.txt, poses.txt, image_l/, image_r/); "
+                             "default ../shared/data/kitti_seq1")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[bench.localizer] %(message)s", stream=sys.stderr)
+    if args.data is not None and args.source != "kitti":
+        parser.error("--data goes with --source kitti")
     if args.source == "kitti":
-        return run_and_print(lambda: bench_kitti(args.repeats))
+        return run_and_print(lambda: bench_kitti(args.repeats, data=args.data))
     return run_and_print(lambda: bench_sim(args.speed))
 
 

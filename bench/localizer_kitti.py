@@ -1,8 +1,9 @@
 """`lbc bench localizer_kitti`: per-frame cost and accuracy of the stereo VT&R core on real KITTI data.
 
-Data: the 51-frame KITTI odometry excerpt in `../shared/data/kitti_seq1` (rectified 1226x370 pairs,
-10 Hz, ~1.2 m apart, ~60 m; KITTI Vision Benchmark, Geiger et al., KIT / Toyota Technological Institute,
-CC BY-NC-SA 3.0), read in place. PNG decoding happens before timing (a camera driver delivers raw
+Data: by default the 51-frame KITTI odometry excerpt in `../shared/data/kitti_seq1` (rectified 1226x370
+pairs, 10 Hz, ~1.2 m apart, ~60 m; KITTI Vision Benchmark, Geiger et al., KIT / Toyota Technological
+Institute, CC BY-NC-SA 3.0), read in place; `--data DIR` any folder of the same layout (`data` and
+`data_dir` in the JSON name it). PNG decoding happens before timing (a camera driver delivers raw
 pixels); everything after it is timed: stereo keypoint extraction plus registration.
 
 Two passes, on one CPU (process pinned, OpenCV and BLAS limited to one thread):
@@ -83,10 +84,12 @@ def _teach(seq: KittiSequence, images, frames, settings: VisionSettings) -> tupl
     return times, teach.finish()
 
 
-def bench_kitti(repeats: int = 1, settings: VisionSettings | None = None) -> dict:
+def bench_kitti(repeats: int = 1, settings: VisionSettings | None = None, data: Path | None = None) -> dict:
+    """`data`: a folder of the KITTI layout (load_kitti); default the shared excerpt."""
     settings = settings or VisionSettings()
     pinned, limit = single_core()
-    seq = load_kitti()
+    folder = Path(data).resolve() if data is not None else shared_data_dir() / "kitti_seq1"
+    seq = load_kitti(folder)
     images = [seq.images(i) for i in range(len(seq))]
     n = len(seq)
     dist = float(np.sum(np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1)))
@@ -122,15 +125,19 @@ def bench_kitti(repeats: int = 1, settings: VisionSettings | None = None) -> dic
             "vo_drift_pct": round(drift_pct, 3), "vo_drift_deg_per_m": round(drift_deg_m, 5),
             "reloc_within_tol": round(float(np.mean(within)), 3),
             "repeat_status": {s: statuses.count(s) for s in sorted(set(statuses))},
-            "frames": n, "distance_m": round(dist, 1), "repeats": repeats, "pinned": pinned}
+            "frames": n, "distance_m": round(dist, 1), "repeats": repeats, "pinned": pinned,
+            "data": folder.name, "data_dir": str(folder)}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="lbc bench localizer_kitti", description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="passes over the sequence (latencies pooled)")
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="a folder of the KITTI layout (calib.txt, poses.txt, image_l/, image_r/); "
+                             "default ../shared/data/kitti_seq1")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[bench.localizer_kitti] %(message)s", stream=sys.stderr)
-    return run_and_print(lambda: bench_kitti(args.repeats))
+    return run_and_print(lambda: bench_kitti(args.repeats, data=args.data))
 
 
 if __name__ == "__main__":

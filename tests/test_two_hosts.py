@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from bench.deployment import kill_router
 from deploy.certs import make_certs
 from deploy.manifest import load_manifest
 from deploy.netns import NetnsUnavailable, TwoHosts
@@ -141,6 +142,23 @@ def test_sessions_are_entitled_only_by_their_certificate(two_hosts):
         assert result["rogue_puts_delivered"] == 0, result
         assert result["rogue_control_replies"] == 0, result
         assert result["entitled_puts_delivered"] > 0 and result["operator_control_replies"] > 0, result
+
+
+def test_a_killed_router_on_either_host_is_restarted_and_rejoined(two_hosts):
+    """SIGKILL each host's router in turn: its launcher restarts it, the services and the link between
+    the routers come back by themselves (the store answers the robot host, the robot's services are alive)."""
+    net, manifest, base = two_hosts
+    for host in ("learning", "robot"):
+        kill_router(base, host)
+        r = run_in(net, "robot", "-m", "bench.deployment", "--probe", "robot-back", "--manifest", str(manifest),
+                   timeout=120.0)
+        assert r.returncode == 0, r.stderr[-3000:]
+        back_s = json.loads(r.stdout.strip().splitlines()[-1])["back_after_s"]
+        assert back_s < 10.0, (host, back_s)
+    # and what runs there is still entitled as before
+    r = run_in(net, "robot", "-m", "deploy.cli", "deploy", "check", "--manifest", str(manifest), "--host", "robot",
+               timeout=180.0)
+    assert r.returncode == 0 and json.loads(r.stdout.strip().splitlines()[-1])["rogue_puts_delivered"] == 0
 
 
 REALTIME = dict(SCENARIO, name="linkdown", sim={"clock": "realtime"}, scheduler={"enabled": False},

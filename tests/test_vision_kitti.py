@@ -123,3 +123,20 @@ def test_repeat_rejects_a_teach_failure_jump(kitti):
             dt, dr = _err(r.T_live_kf, _gt(seq, i, 2 * r.keyframe))
             assert dt < 0.15 and dr < 0.5, (i, r.keyframe, dt, dr)
     assert statuses[-1] == "ok"
+
+
+def test_the_kitti_bench_runs_on_any_folder_of_the_layout_and_names_it(tmp_path):
+    """`lbc bench localizer --source kitti --data DIR`: another folder of the KITTI layout (here the
+    excerpt's first 13 frames, linked, under another name) is what the bench runs on and reports."""
+    from bench.localizer_kitti import bench_kitti
+    folder = tmp_path / "my_drive"
+    for side in ("image_l", "image_r"):
+        (folder / side).mkdir(parents=True)
+        for png in sorted((KITTI / side).glob("*.png"))[:13]:
+            (folder / side / png.name).symlink_to(png)
+    (folder / "calib.txt").symlink_to(KITTI / "calib.txt")
+    (folder / "poses.txt").write_text("\n".join((KITTI / "poses.txt").read_text().splitlines()[:13]) + "\n")
+    out = bench_kitti(1, data=folder)
+    assert out["data"] == "my_drive" and out["data_dir"] == str(folder.resolve())
+    assert out["frames"] == 13 and 10.0 < out["distance_m"] < 20.0
+    assert out["reloc_within_tol"] > 0.5 and out["vo_drift_pct"] < 5.0
