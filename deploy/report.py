@@ -16,7 +16,7 @@ import matplotlib
 matplotlib.use("Agg")  # headless: runs on CI machines and robots without a display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.colors import Normalize  # noqa: E402
+from matplotlib.colors import Normalize, to_rgba  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Circle, Patch  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
@@ -33,7 +33,8 @@ _CMAP = plt.get_cmap("viridis")
 _CSS = """body{font-family:sans-serif;max-width:1100px;margin:1em auto;color:#222}
 h1{margin-bottom:.2em}h2{border-bottom:1px solid #ccc;margin-top:1.6em}
 table{border-collapse:collapse;font-size:.85em}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
-th{background:#eee}td.k{text-align:left;font-weight:bold}tr.bad td{background:#fde8e8}
+th{background:#eee}td.k{text-align:left;font-weight:bold}tr.bad td,th.bad{background:#fde8e8}
+summary{cursor:pointer;margin:.6em 0;color:#555}
 img{max-width:100%}.cap{color:#555;font-size:.9em}
 .warn{background:#fff3cd;border:1px solid #e0c36c;padding:.4em .8em}"""
 
@@ -80,12 +81,21 @@ def _trial_colorbar(fig, axes, norm: Normalize) -> None:
     cb.update_ticks()
 
 
+def _pastel(colour: str, amount: float = 0.25) -> tuple[float, float, float]:
+    """`colour` mixed with white: light, but opaque."""
+    r, g, b, _ = to_rgba(colour)
+    return (1 - amount + amount * r, 1 - amount + amount * g, 1 - amount + amount * b)
+
+
 def _plot_map(scenario: Scenario, path: Path, series: list[TrialSeries]) -> str:
     with _figure(size=(10, 6)) as (fig, (ax,)):
-        for patch in scenario.terrain:
-            ax.add_patch(Circle(patch.center, patch.radius_m, color=_TERRAIN_COLOURS[patch.kind], alpha=0.25, lw=0))
-        handles = [Patch(color=_TERRAIN_COLOURS[k], alpha=0.4, label=k.replace("_", " "))
-                   for k in dict.fromkeys(p.kind for p in scenario.terrain)]
+        # an opaque pastel fill and a solid outline in the kind's colour, larger patches first: a patch drawn
+        # over another shows its own legend colour, not a blend of the two
+        for patch in sorted(scenario.terrain, key=lambda p: -p.radius_m):
+            ax.add_patch(Circle(patch.center, patch.radius_m, facecolor=_pastel(_TERRAIN_COLOURS[patch.kind]),
+                                edgecolor=_TERRAIN_COLOURS[patch.kind], lw=1.5))
+        handles = [Patch(facecolor=_pastel(_TERRAIN_COLOURS[k]), edgecolor=_TERRAIN_COLOURS[k], lw=1.5,
+                         label=k.replace("_", " ")) for k in dict.fromkeys(p.kind for p in scenario.terrain)]
         driven = [s for s in series if s.x_m.size]
         for s in driven[1:-1]:  # middle trials faintly, for the spread between first and last
             ax.plot(s.x_m, s.y_m, color="grey", lw=0.6, alpha=0.4)
@@ -253,15 +263,40 @@ def _kv_table(rows: dict) -> str:
     return f"<table>{body}</table>"
 
 
+# what a reader looks at first, one column each; every summary.json entry follows, folded
+KEY_COLUMNS = {"trial": "trial", "completed": "completed", "end_reason": "end", "max_lateral_m": "max lat (m)",
+               "rms_lateral_m": "rms lat (m)", "max_heading_rad": "max head (deg)",
+               "constraint_violations": "violations", "travel_time_s": "time (s)", "mean_speed_mps": "mean v (m/s)"}
+
+
+def _bad(t: dict) -> bool:
+    return (t.get("constraint_violations") or 0) > 0 or t.get("completed") is False
+
+
 def _trial_table(trials: list[dict]) -> str:
-    keys = list(dict.fromkeys(k for t in trials for k in t))  # union, first-seen order
-    head = "".join(f"<th>{html.escape(str(k))}</th>" for k in keys)
+    """The key columns as a table that fits the page, then every entry transposed (a row per entry, a
+    column per trial: there are few trials and many entries) in a fold."""
+    key_cols = [k for k in KEY_COLUMNS if any(k in t for t in trials)]
+    head = "".join(f"<th>{html.escape(KEY_COLUMNS[k])}</th>" for k in key_cols)
     rows = []
     for t in trials:
-        bad = (t.get("constraint_violations") or 0) > 0 or t.get("completed") is False
-        cells = "".join(f"<td>{html.escape(_fmt(t.get(k)))}</td>" for k in keys)
-        rows.append(f"<tr{' class=bad' if bad else ''}>{cells}</tr>")
-    return f"<div style='overflow-x:auto'><table><tr>{head}</tr>{''.join(rows)}</table></div>"
+        cells = "".join(f"<td>{html.escape(_key_cell(k, t.get(k)))}</td>" for k in key_cols)
+        rows.append(f"<tr{' class=bad' if _bad(t) else ''}>{cells}</tr>")
+    every = list(dict.fromkeys(k for t in trials for k in t))  # union, first-seen order
+    full_head = "<th>entry</th>" + "".join(f"<th{' class=bad' if _bad(t) else ''}>trial {html.escape(_fmt(t.get('trial')))}"
+                                          "</th>" for t in trials)
+    full_rows = "".join(f"<tr><td class=k>{html.escape(str(k))}</td>"
+                        + "".join(f"<td>{html.escape(_fmt(t.get(k)))}</td>" for t in trials) + "</tr>"
+                        for k in every)
+    return (f"<table><tr>{head}</tr>{''.join(rows)}</table>"
+            f"<details><summary>all {len(every)} summary.json entries per trial</summary>"
+            f"<div style='overflow-x:auto'><table><tr>{full_head}</tr>{full_rows}</table></div></details>")
+
+
+def _key_cell(key: str, value) -> str:
+    if key == "max_heading_rad" and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return _fmt(math.degrees(value))
+    return _fmt(value)
 
 
 def _model_section(model: dict) -> list[str]:
@@ -342,8 +377,9 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
                  "the learned model (trial 1 has no model yet).",
                  _plot_disturbance(disturbance or [], scenario.sim.period_s)),
         *(_model_section(summary["identified_model"]) if summary.get("identified_model") else []),
-        "<h2>Trials</h2><p class=cap>All summary.json entries per trial; highlighted rows violated a "
-        "constraint or did not complete. Angles in rad, times in s unless named otherwise.</p>",
+        "<h2>Trials</h2><p class=cap>Key figures per trial (truth against the taught route); highlighted "
+        "trials violated a constraint or did not complete. Below, folded, every summary.json entry (angles in "
+        "rad, times in s unless named otherwise).</p>",
         _trial_table(trials),
         "<h2>Run</h2>", _kv_table(run_info), "</body></html>",
     ]

@@ -1,4 +1,5 @@
 import base64
+import math
 import re
 
 import matplotlib.pyplot as plt
@@ -9,7 +10,7 @@ from common.path import Path
 from common.scenario import parse_scenario
 from deploy.learned import DisturbanceSeries
 from deploy.metrics import TrialSeries
-from deploy.report import write_report
+from deploy.report import _fmt, write_report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 N_IMAGES = 6  # map, tracking errors, learning, speed, solve time, learned disturbance
@@ -111,6 +112,12 @@ def test_report_contents(tmp_path):
     for trial in (1, 2):
         assert f"<td>{trial}</td>" in table
     assert "n/a" in table                       # mean_matched_features None
+    # the key columns first, in a table that fits the page; every entry, transposed, folded below it
+    key_table, folded = table[:table.index("<details>")], table[table.index("<details>"):]
+    assert key_table.count("<th>") <= 9 and "max head (deg)" in key_table and "solve_ms_p50" not in key_table
+    assert _fmt(math.degrees(entry(series[0])["max_heading_rad"])) in key_table
+    assert all(f"<td class=k>{k}</td>" in folded for k in entry(series[0]))
+    assert folded.count("<th") == 1 + 2       # the entry column and one per trial
     assert "&lt;aborted&gt;" not in table       # both completed here ...
     assert "lbc run demo.toml &lt;x&gt;" in page  # ... but inserted strings are escaped
     assert "<script" not in page and "http" not in page
@@ -135,3 +142,18 @@ def test_report_edge_cases(tmp_path, case):
     assert page.count("data:image/png;base64,") == N_IMAGES
     for e in entries:
         assert f"<td>{e['trial']}</td>" in page
+
+
+def test_a_patch_drawn_over_another_keeps_its_legend_colour():
+    import cv2
+    from common.scenario import parse_scenario
+    from deploy.report import _TERRAIN_COLOURS, _pastel, _plot_map
+    sc = parse_scenario({"name": "overlap", "robot": {"preset": "husky"}, "path": {"waypoints": [[0, 0], [20, 0]]},
+                         "terrain": [{"kind": "side_slope", "center": [10.0, 0.0], "radius_m": 5.0, "slope_deg": 8.0,
+                                      "downhill_deg": 90.0},
+                                     {"kind": "slip", "center": [10.0, 0.0], "radius_m": 3.0, "traction": 0.7}]})
+    png = base64.b64decode(_plot_map(sc, make_path(), []))
+    bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    for kind in ("slip", "side_slope"):     # the inner patch's area shows its own legend colour, no blend
+        want = np.round(np.array(_pastel(_TERRAIN_COLOURS[kind]))[::-1] * 255)
+        assert np.count_nonzero(np.abs(bgr - want).max(axis=2) <= 2) > 2000, kind
