@@ -34,6 +34,7 @@ from deploy.launcher import LaunchError, Launcher
 from deploy.learned import predict_trial
 from deploy.metrics import TrialRecord, loop_figures, outside_3sigma_fraction, trial_metrics, truth_series
 from deploy.recorder import McapRecorder
+from deploy.ros2_export import Ros2Export
 from deploy.router import free_port
 from services.bridge.teach_driver import smooth_waypoints
 
@@ -615,7 +616,8 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
     series, records, disturbance = [], [], []
     try:
         session = _connect(endpoint, launcher, connect_timeout_s, zenoh_conf)
-        recorder = McapRecorder(out / "run.mcap", session, stereo_every=sc.localization.record_stereo_every)
+        recorder = McapRecorder(out / "run.mcap", session, stereo_every=sc.localization.record_stereo_every,
+                                ros2=Ros2Export(sc.robot.name, sc.constraints.lateral_m))
         exp = Experiment(sc, session, recorder, progress, launcher, ready_timeout_s=ready_timeout_s)
         exp.wait_ready()
         exp.teach()

@@ -1,4 +1,6 @@
-"""Records every bus message under `lbc/**` into an MCAP file, exactly as it travelled (msgpack).
+"""Records every bus message under `lbc/**` into an MCAP file, exactly as it travelled (msgpack, each
+channel with its dataclass as a JSON Schema), and beside them the standard ROS 2 topics made of them
+(CDR, ros2msg schemas: ros2_export.py), which Foxglove and the ROS 2 tools decode.
 
 The Zenoh callback only enqueues; a writer thread owns the file. `close()` always finishes the
 file (an unfinished MCAP cannot be opened by indexed readers), so call it in a `finally`.
@@ -8,6 +10,7 @@ disk. The same holds for a backlog the writer cannot keep up with.
 """
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -15,11 +18,16 @@ import time
 from pathlib import Path
 
 import zenoh
+from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import Writer
+from mcap_ros2._dynamic import serialize_dynamic   # the CDR encoder mcap_ros2's own Writer uses
 
 from common import keys
 from common.codec import DecodeError, decode, encode
 from common.messages import AliveEvent
+from deploy.json_schema import json_schema
+from deploy.ros2_export import Ros2Export
+from deploy.ros2_msgs import msgdef
 
 log = logging.getLogger(__name__)
 
@@ -30,8 +38,11 @@ MAX_BACKLOG = 200_000                 # messages waiting for the writer; beyond,
 
 class McapRecorder:
     def __init__(self, path: str | Path, session: zenoh.Session, key: str = keys.everything(),
-                 stereo_every: int = 1):
-        """`stereo_every`: keep one stereo frame in this many (per key); everything else is kept."""
+                 stereo_every: int = 1, ros2: Ros2Export | None = None):
+        """`stereo_every`: keep one stereo frame in this many (per key); everything else is kept.
+        `ros2`: also write the standard ROS 2 topics it makes of the messages (ros2_export.py)."""
+        self.ros2 = ros2
+        self._encoders: dict = {}        # ROS 2 datatype -> CDR encoder
         self.path = Path(path)
         self.stereo_every = max(int(stereo_every), 1)
         self.stereo_skipped = 0
@@ -82,11 +93,31 @@ class McapRecorder:
             name = cls.__name__ if cls is not None else "unknown"
             sid = self._schemas.get(name)
             if sid is None:
-                # no schema language describes msgpack maps; the name tells readers which dataclass
-                sid = self._schemas[name] = self._writer.register_schema(name=name, encoding="", data=b"")
-            ch = self._channels[key] = self._writer.register_channel(topic=key, message_encoding="msgpack",
-                                                                     schema_id=sid)
+                # the dataclass as a JSON Schema: field names, types and schema version, for any reader
+                schema = json.dumps(json_schema(cls)).encode() if cls is not None else b""
+                sid = self._schemas[name] = self._writer.register_schema(
+                    name=name, encoding=SchemaEncoding.JSONSchema if cls is not None else "", data=schema)
+            ch = self._channels[key] = self._writer.register_channel(
+                topic=key, message_encoding=MessageEncoding.MessagePack, schema_id=sid)
         return ch
+
+    def _ros2_channel(self, topic: str, datatype: str) -> int:
+        ch = self._channels.get(topic)
+        if ch is None:
+            if datatype not in self._encoders:
+                text = msgdef(datatype)
+                self._schemas[datatype] = self._writer.register_schema(
+                    name=datatype, encoding=SchemaEncoding.ROS2, data=text.encode())
+                self._encoders[datatype] = serialize_dynamic(datatype, text)[datatype]
+            ch = self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding=MessageEncoding.CDR, schema_id=self._schemas[datatype])
+        return ch
+
+    def _add(self, ch: int, key: str, data: bytes, t_ns: int) -> None:
+        seq = self._seq.get(key, 0)
+        self._seq[key] = seq + 1
+        self._writer.add_message(channel_id=ch, log_time=t_ns, publish_time=t_ns, data=data, sequence=seq)
+        self.count += 1
 
     def _run(self) -> None:
         while True:
@@ -94,31 +125,32 @@ class McapRecorder:
             if item is None:
                 return
             key, data, t_ns, published = item
-            if published and not self._acceptable(key, data):
+            msg = self._decoded(key, data)
+            if published and msg is None:
                 self.rejected += 1
                 if self.rejected > REJECTED_KEEP_MESSAGES or self._rejected_bytes + len(data) > REJECTED_KEEP_BYTES:
                     self.rejected_skipped += 1
                     continue
                 self._rejected_bytes += len(data)
             try:
-                ch = self._channel(key)
-                seq = self._seq.get(key, 0)
-                self._seq[key] = seq + 1
-                self._writer.add_message(channel_id=ch, log_time=t_ns, publish_time=t_ns, data=data, sequence=seq)
-                self.count += 1
+                self._add(self._channel(key), key, data, t_ns)
+                if self.ros2 is not None and msg is not None:
+                    for r in self.ros2.convert(msg):
+                        self._add(self._ros2_channel(r.topic, r.datatype), r.topic,
+                                  self._encoders[r.datatype](r.message), t_ns)
             except Exception:  # keep recording the rest
                 log.exception("cannot record message on %s", key)
 
     @staticmethod
-    def _acceptable(key: str, data: bytes) -> bool:
+    def _decoded(key: str, data: bytes):
+        """The message, or None if no service would accept it."""
         cls = keys.message_type(key)
         if cls is None:
-            return False
+            return None
         try:
-            decode(cls, data)
+            return decode(cls, data)
         except DecodeError:
-            return False
-        return True
+            return None
 
     def close(self) -> None:
         for sub in (self._sub, self._alive):

@@ -17,6 +17,7 @@ from common.codec import decode, encode
 from common.messages import BridgeStatus, ControlRequest, StoreStats, TruthPose, VelocityCommand
 from deploy.experiment import run_experiment
 from tests.conftest import SHORT_SCENARIO, wait_until
+from tests.ros2_topics import check_standard_topics
 
 pytestmark = pytest.mark.integration
 
@@ -56,6 +57,11 @@ def test_experiment_with_two_trials_writes_its_outputs(tmp_path, scenario_file):
         for _schema, channel, message in reader.iter_messages(topics=[keys.truth("r1")]):
             assert decode(TruthPose, message.data).trial in (0, 1, 2)
             break
+    # and the standard ROS 2 topics, which an independent ROS 2 decoder reads
+    topics = check_standard_topics(out / "run.mcap", "r1")
+    assert "/controller/horizon" not in topics      # FL predicts nothing
+    odom = topics["/odom"][-1]
+    assert odom.header.frame_id == "odom" and odom.child_frame_id == "r1/base_link"
 
 
 def test_killing_the_controller_mid_trial_stops_the_robot_within_half_a_second(deployment):

@@ -18,6 +18,7 @@ from common.store_client import ExperienceOutbox, WindowCache
 from deploy.experiment import run_experiment
 from deploy.reproducible import TRIAL_WALL_CLOCK_KEYS, differences, reproducible_part
 from tests.conftest import wait_until
+from tests.ros2_topics import check_standard_topics
 from tests.test_store_service import N_VERTICES, rig  # noqa: F401  (the store fixture)
 
 MODEL = "unicycle-test"
@@ -51,6 +52,14 @@ def test_two_lockstep_runs_of_one_seed_give_the_same_summary(tmp_path, scenario_
     diff = differences(reproducible_part(on_disk[0]), reproducible_part(on_disk[1]))
     assert not diff, "\n".join(diff + _warnings(tmp_path / "a") + _warnings(tmp_path / "b"))
     assert on_disk[0] == json.loads(json.dumps(first)) and on_disk[1] == json.loads(json.dumps(second))
+    # RC-LB-NMPC's prediction and its 3-sigma band as ROS 2 markers, beside the standard topics
+    topics = check_standard_topics(tmp_path / "a" / "run.mcap", "husky")
+    horizons = topics["/controller/horizon"]
+    assert horizons and all(m.markers[0].ns == "prediction" for m in horizons)
+    banded = [m for m in horizons if len(m.markers) == 3]
+    assert len(banded) > 0.9 * len(horizons)
+    left, right = banded[-1].markers[1].points, banded[-1].markers[2].points
+    assert len(left) == len(right) == len(banded[-1].markers[0].points) > 5
 
 
 def _warnings(out_dir) -> list[str]:

@@ -11,6 +11,7 @@ from mcap.reader import make_reader
 from common.codec import decode
 from common.messages import LocState
 from deploy.experiment import run_experiment
+from tests.ros2_topics import check_standard_topics
 
 pytestmark = pytest.mark.integration
 
@@ -42,4 +43,13 @@ def test_a_route_taught_and_repeated_on_vision(tmp_path, scenario_file):
                 statuses.append(loc.status)
     assert statuses and statuses.count("ok") >= 0.99 * len(statuses), {s: statuses.count(s) for s in set(statuses)}
     assert (out / "data" / "routes" / "vision1.vmap").exists()
+    # the standard ROS 2 topics, stereo frames included, read by an independent ROS 2 decoder
+    topics = check_standard_topics(out / "run.mcap", "husky")
+    for side in ("left", "right"):
+        raw, png = topics.get(f"/stereo/{side}/image_raw", []), topics.get(f"/stereo/{side}/image_raw/compressed", [])
+        assert raw or png, sorted(topics)
+        for img in raw[:3]:
+            assert img.encoding == "mono8" and len(img.data) == img.width * img.height == img.step * img.height
+        for img in png[:3]:
+            assert img.format == "png" and bytes(img.data[:8]) == b"\x89PNG\r\n\x1a\n"
     assert "<h2>Localization</h2>" in (out / "report.html").read_text()
