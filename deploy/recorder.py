@@ -26,7 +26,7 @@ from common import keys
 from common.codec import DecodeError, decode, encode
 from common.messages import AliveEvent
 from deploy.json_schema import json_schema
-from deploy.ros2_export import Ros2Export
+from deploy.ros2_export import JSON_SCHEMAS, Ros2Export
 from deploy.ros2_msgs import msgdef
 
 log = logging.getLogger(__name__)
@@ -113,6 +113,17 @@ class McapRecorder:
                 topic=topic, message_encoding=MessageEncoding.CDR, schema_id=self._schemas[datatype])
         return ch
 
+    def _json_channel(self, topic: str, schema_name: str) -> int:
+        ch = self._channels.get(topic)
+        if ch is None:
+            if schema_name not in self._schemas:
+                self._schemas[schema_name] = self._writer.register_schema(
+                    name=schema_name, encoding=SchemaEncoding.JSONSchema,
+                    data=json.dumps(JSON_SCHEMAS[schema_name]).encode())
+            ch = self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding=MessageEncoding.JSON, schema_id=self._schemas[schema_name])
+        return ch
+
     def _add(self, ch: int, key: str, data: bytes, t_ns: int) -> None:
         seq = self._seq.get(key, 0)
         self._seq[key] = seq + 1
@@ -136,8 +147,12 @@ class McapRecorder:
                 self._add(self._channel(key), key, data, t_ns)
                 if self.ros2 is not None and msg is not None:
                     for r in self.ros2.convert(msg):
-                        self._add(self._ros2_channel(r.topic, r.datatype), r.topic,
-                                  self._encoders[r.datatype](r.message), t_ns)
+                        if r.encoding == "json":
+                            self._add(self._json_channel(r.topic, r.datatype), r.topic,
+                                      json.dumps(r.message).encode(), t_ns)
+                        else:
+                            self._add(self._ros2_channel(r.topic, r.datatype), r.topic,
+                                      self._encoders[r.datatype](r.message), t_ns)
             except Exception:  # keep recording the rest
                 log.exception("cannot record message on %s", key)
 

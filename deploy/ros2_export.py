@@ -9,7 +9,8 @@ Topics: /tf (tf2_msgs/TFMessage: world -> truth, map -> estimate), /odom (nav_ms
 (geometry_msgs/TwistStamped), /route (nav_msgs/Path), /corridor and /controller/horizon
 (visualization_msgs/MarkerArray: the corridor's edges; the predicted poses with their 3-sigma lateral
 band), /localization/pose (geometry_msgs/PoseWithCovarianceStamped), /stereo/{left,right}/image_raw
-(sensor_msgs/Image, or .../compressed for PNG frames).
+(sensor_msgs/Image, or .../compressed for PNG frames). And /controller/tracking (JSON: errors, command,
+spread, solve time; no ROS 2 message holds a path tracker's errors). deploy/foxglove/ has a layout.
 """
 from __future__ import annotations
 
@@ -24,9 +25,23 @@ from common.messages import ControllerStatus, LocState, Odometry, RouteMsg, Ster
 @dataclass(frozen=True)
 class Ros2Message:
     topic: str
-    datatype: str
+    datatype: str         # a ROS 2 type (encoding cdr), or the name of a JSON Schema in JSON_SCHEMAS (json)
     message: dict
     stamp_s: float
+    encoding: str = "cdr"
+
+
+# No ROS 2 message carries a path tracker's errors: they go out as JSON (which Foxglove plots), with a schema
+TRACKING = "lbc/Tracking"
+JSON_SCHEMAS = {TRACKING: {
+    "type": "object", "title": TRACKING,
+    "description": "The controller's view of one step: errors against the taught route (estimate), command, "
+                   "predicted 1-sigma lateral spread, solve time",
+    "properties": {"stamp_s": {"type": "number"}, "trial": {"type": "integer"}, "state": {"type": "string"},
+                   "distance_m": {"type": "number"}, "lateral_m": {"type": "number"},
+                   "heading_deg": {"type": "number"}, "v_cmd_mps": {"type": "number"},
+                   "w_cmd_radps": {"type": "number"}, "sigma_lat_m": {"type": "number"},
+                   "solve_ms": {"type": "number"}}}}
 
 
 def _time(stamp_s: float) -> dict:
@@ -72,7 +87,7 @@ class Ros2Export:
 
     def convert(self, msg) -> list[Ros2Message]:
         for cls, fn in ((TruthPose, self._truth), (LocState, self._estimate), (Odometry, self._odom),
-                        (VelocityCommand, self._cmd), (RouteMsg, self._route), (ControllerStatus, self._horizon),
+                        (VelocityCommand, self._cmd), (RouteMsg, self._route), (ControllerStatus, self._status),
                         (StereoFrame, self._stereo)):
             if isinstance(msg, cls):
                 return fn(msg)
@@ -126,6 +141,12 @@ class Ros2Export:
                  for i, side in enumerate((1.0, -1.0))]
         return [Ros2Message("/route", "nav_msgs/Path", path, m.stamp_s),
                 Ros2Message("/corridor", "visualization_msgs/MarkerArray", {"markers": edges}, m.stamp_s)]
+
+    def _status(self, m: ControllerStatus) -> list[Ros2Message]:
+        tracking = {"stamp_s": m.stamp_s, "trial": m.trial, "state": m.state, "distance_m": m.distance_m,
+                    "lateral_m": m.lateral_m, "heading_deg": math.degrees(m.heading_rad), "v_cmd_mps": m.v_cmd_mps,
+                    "w_cmd_radps": m.w_cmd_radps, "sigma_lat_m": m.sigma_lat_m, "solve_ms": m.solve_ms}
+        return [Ros2Message("/controller/tracking", TRACKING, tracking, m.stamp_s, "json")] + self._horizon(m)
 
     def _horizon(self, m: ControllerStatus) -> list[Ros2Message]:
         if not m.pred_x_m:

@@ -45,3 +45,16 @@ def check_standard_topics(mcap_path, robot: str) -> dict[str, list]:
     assert len(pose.pose.covariance) == 36 and pose.pose.covariance[0] > 0
     assert any(abs(m.twist.linear.x) > 0.1 for m in topics["/cmd_vel"])
     return topics
+
+
+def layout_topics(layout_path) -> set[str]:
+    """Every topic the Foxglove layout shows (3D topics, plot paths, image topics)."""
+    import json
+    config = json.loads(open(layout_path).read())["configById"]
+    out = set()
+    for panel in config.values():
+        out |= set(panel.get("topics", {}))
+        out |= {p["value"].split(".")[0] for p in panel.get("paths", [])}
+        if "imageMode" in panel:
+            out.add(panel["imageMode"]["imageTopic"])
+    return out

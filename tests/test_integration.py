@@ -5,6 +5,7 @@ import json
 import os
 import queue
 import signal
+from pathlib import Path
 
 import msgpack
 import pytest
@@ -17,9 +18,10 @@ from common.codec import decode, encode
 from common.messages import BridgeStatus, ControlRequest, StoreStats, TruthPose, VelocityCommand
 from deploy.experiment import run_experiment
 from tests.conftest import SHORT_SCENARIO, wait_until
-from tests.ros2_topics import check_standard_topics
+from tests.ros2_topics import check_standard_topics, layout_topics
 
 pytestmark = pytest.mark.integration
+ROOT = Path(__file__).resolve().parents[1]
 
 SUMMARY_KEYS = {"trial", "completed", "max_lateral_m", "rms_lateral_m", "max_heading_rad", "rms_heading_rad",
                 "travel_time_s", "mean_speed_mps", "constraint_violations", "mean_matched_features",
@@ -62,6 +64,15 @@ def test_experiment_with_two_trials_writes_its_outputs(tmp_path, scenario_file):
     assert "/controller/horizon" not in topics      # FL predicts nothing
     odom = topics["/odom"][-1]
     assert odom.header.frame_id == "odom" and odom.child_frame_id == "r1/base_link"
+    # the tracker's errors as JSON with its schema; the Foxglove layout shows only what a run has
+    with open(out / "run.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        channels = {c.topic: c for c in reader.get_summary().channels.values()}
+        tracking = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=["/controller/tracking"])]
+    assert channels["/controller/tracking"].message_encoding == "json"
+    assert tracking and max(abs(t["lateral_m"]) for t in tracking) < 0.2 and {"heading_deg", "v_cmd_mps"} <= set(tracking[-1])
+    shown = layout_topics(ROOT / "deploy" / "foxglove" / "lbc-run.json")
+    assert shown - set(channels) <= {"/controller/horizon", "/stereo/left/image_raw"}, shown - set(channels)
 
 
 def test_killing_the_controller_mid_trial_stops_the_robot_within_half_a_second(deployment):
