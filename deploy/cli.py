@@ -8,7 +8,7 @@ import signal
 import sys
 import threading
 
-from common.bus import add_log_level_argument
+from common.bus import DEFAULT_ENDPOINT, add_log_level_argument
 from common.config import ConfigError
 
 BENCHES = ("bus", "gp", "store", "controller", "localizer", "scenarios", "deployment")
@@ -144,6 +144,32 @@ def _bench(args) -> int:
     return importlib.import_module(f"bench.{args.name}").main(args.args)
 
 
+def _view(args) -> int:
+    from common.bus import install_stop_handlers
+    from common.scenario import ConstraintsSection, load_scenario
+    from deploy.view import serve
+    try:
+        if args.manifest is not None:
+            from deploy import access
+            from deploy.certs import OPERATOR
+            from deploy.manifest import load_manifest
+            if args.host is None or args.connect is not None:
+                raise ConfigError("--manifest needs --host NAME (and replaces --connect)")
+            m = load_manifest(args.manifest)
+            endpoint, conf = m.host(args.host).listen, access.session_config(m, args.host, OPERATOR)
+            corridor = m.load_scenario().constraints.lateral_m
+        else:
+            endpoint, conf = args.connect or DEFAULT_ENDPOINT, args.zenoh_config
+            corridor = (load_scenario(args.scenario).constraints.lateral_m if args.scenario
+                        else ConstraintsSection().lateral_m)
+    except ConfigError as exc:
+        _say("view", str(exc))
+        return 2
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    return serve(endpoint, conf, corridor, args.address, args.port, stop, lambda text: _say("view", text))
+
+
 def _router(args) -> int:
     from deploy import router
     return router.run(args)
@@ -208,6 +234,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     store_cli.add_parser(sub)
     sched_cli.add_parser(sub)
+
+    view = sub.add_parser("view", help="serve the live bus to Foxglove (WebSocket), the channels of run.mcap")
+    view.add_argument("--connect", default=None, help=f"the deployment's Zenoh endpoint (default {DEFAULT_ENDPOINT})")
+    view.add_argument("--zenoh-config", default=None, metavar="FILE", help="Zenoh JSON5 config of the session (TLS)")
+    view.add_argument("--manifest", default=None, help="connect to a manifest's host with its operator certificate")
+    view.add_argument("--host", default=None, help="the manifest host to connect to")
+    view.add_argument("--scenario", default=None, help="the corridor drawn is this scenario's (default: the "
+                                                       "scenario default)")
+    view.add_argument("--address", default="127.0.0.1", help="where the WebSocket server listens")
+    view.add_argument("--port", type=int, default=8765, help="its port (Foxglove's default 8765)")
+    view.set_defaults(func=_view)
 
     router_parser = sub.add_parser("router", help="run the local Zenoh router")
     router.add_arguments(router_parser)
