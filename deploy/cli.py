@@ -144,6 +144,11 @@ def _bench(args) -> int:
     return importlib.import_module(f"bench.{args.name}").main(args.args)
 
 
+def _fit_logs(args) -> int:
+    from deploy import fit_logs
+    return fit_logs.main(args.args)
+
+
 def _view(args) -> int:
     from common.bus import install_stop_handlers
     from common.scenario import ConstraintsSection, load_scenario
@@ -234,6 +239,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     store_cli.add_parser(sub)
     sched_cli.add_parser(sub)
+
+    model = sub.add_parser("model", help="the learned model on a robot's own logs")
+    model.set_defaults(func=_help_of(model))
+    fit = model.add_subparsers(dest="sub", metavar="SUBCOMMAND").add_parser(
+        "fit-logs", add_help=False, help="would learning help this robot? identify, fit the GP on training logs, "
+                                         "report the held-out residuals (JSON on the last line; --help for more)")
+    fit.add_argument("args", nargs=argparse.REMAINDER)
+    fit.set_defaults(func=_fit_logs)
 
     view = sub.add_parser("view", help="serve the live bus to Foxglove (WebSocket), the channels of run.mcap")
     view.add_argument("--connect", default=None, help=f"the deployment's Zenoh endpoint (default {DEFAULT_ENDPOINT})")

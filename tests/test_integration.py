@@ -8,6 +8,7 @@ import signal
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import pytest
 import zenoh
 from mcap.reader import make_reader
@@ -17,6 +18,7 @@ from common.bus import query
 from common.codec import decode, encode
 from common.messages import BridgeStatus, ControlRequest, StoreStats, TruthPose, VelocityCommand
 from deploy.experiment import run_experiment
+from deploy.robot_logs import load_ros2_mcap, residuals
 from tests.conftest import SHORT_SCENARIO, wait_until
 from tests.ros2_topics import check_standard_topics, layout_topics
 
@@ -71,6 +73,11 @@ def test_experiment_with_two_trials_writes_its_outputs(tmp_path, scenario_file):
         tracking = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=["/controller/tracking"])]
     assert channels["/controller/tracking"].message_encoding == "json"
     assert tracking and max(abs(t["lateral_m"]) for t in tracking) < 0.2 and {"heading_deg", "v_cmd_mps"} <= set(tracking[-1])
+    # a run's MCAP is a ROS 2 log `lbc model fit-logs --format ros2-mcap` reads (wheel odometry and commands)
+    drive = load_ros2_mcap(out / "run.mcap")
+    a, g = residuals(drive)
+    assert drive.travel_m > 15.0 and len(a) > 100 and np.isfinite(a).all() and np.isfinite(g).all()
+    assert 0.5 < np.nanmedian(drive.y[drive.u[:, 0] > 0.5, 0]) / 0.8 < 1.2    # measured speed ~ commanded
     shown = layout_topics(ROOT / "deploy" / "foxglove" / "lbc-run.json")
     assert shown - set(channels) <= {"/controller/horizon", "/stereo/left/image_raw"}, shown - set(channels)
 
