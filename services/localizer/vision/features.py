@@ -184,8 +184,8 @@ class StereoFrontend:
         return bl[keep], br[keep]
 
     def _refine_disparity(self, L, R, uv, d0) -> tuple[np.ndarray, np.ndarray]:
-        """SAD patch search of +-(r+1) px around the descriptor disparity at the left keypoint's row, then a
-        parabola through the three costs around the minimum. Rejects pairs whose best patch disparity
+        """SAD patch search of +-(r+1) px around the descriptor disparity at the left keypoint's row, then an
+        equiangular (V) fit through the three costs around the minimum. Rejects pairs whose best patch disparity
         is on the search border (the descriptor match and the image disagree)."""
         s = self.s
         h, r = s.subpixel_half_patch, s.subpixel_radius_px
@@ -214,7 +214,11 @@ class StereoFrontend:
         k = np.clip(k, 1, len(ks) - 2)
         m = np.arange(len(idx))
         cm, c0, cp = cost[m, k - 1], cost[m, k], cost[m, k + 1]
-        den = cm - 2.0 * c0 + cp
+        # the SAD cost of a shifted patch is V-shaped near its minimum, not a parabola: a parabola through
+        # three of its samples pulls the estimate towards the whole pixel (disparities piled up within
+        # 0.1 px of an integer: 29 % of them on KITTI, against 20 % for no bias); the equiangular fit
+        # (two lines of opposite slope) has no such pull
+        den = np.maximum(cm, cp) - c0
         delta = np.where(den > 0, 0.5 * (cm - cp) / np.where(den > 0, den, 1.0), 0.0)
         good &= np.abs(delta) <= 0.5
         dd[idx] = di + ks[k] + delta
