@@ -10,7 +10,6 @@ disk. The same holds for a backlog the writer cannot keep up with.
 """
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -18,16 +17,13 @@ import time
 from pathlib import Path
 
 import zenoh
-from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import Writer
-from mcap_ros2._dynamic import serialize_dynamic   # the CDR encoder mcap_ros2's own Writer uses
 
 from common import keys
 from common.codec import DecodeError, decode, encode
 from common.messages import AliveEvent
-from deploy.json_schema import json_schema
-from deploy.ros2_export import JSON_SCHEMAS, Ros2Export
-from deploy.ros2_msgs import msgdef
+from deploy.ros2_export import Ros2Export
+from deploy.wire import TopicEncoder, WireSchema, project_schema
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +38,7 @@ class McapRecorder:
         """`stereo_every`: keep one stereo frame in this many (per key); everything else is kept.
         `ros2`: also write the standard ROS 2 topics it makes of the messages (ros2_export.py)."""
         self.ros2 = ros2
-        self._encoders: dict = {}        # ROS 2 datatype -> CDR encoder
+        self._topics = TopicEncoder()
         self.path = Path(path)
         self.stereo_every = max(int(stereo_every), 1)
         self.stereo_skipped = 0
@@ -86,42 +82,15 @@ class McapRecorder:
         """Add a message that did not travel as a publication (e.g. a control request)."""
         self._queue.put((key, data, time.time_ns(), False))
 
-    def _channel(self, key: str) -> int:
-        ch = self._channels.get(key)
+    def _channel(self, topic: str, schema: WireSchema) -> int:
+        ch = self._channels.get(topic)
         if ch is None:
-            cls = keys.message_type(key)
-            name = cls.__name__ if cls is not None else "unknown"
-            sid = self._schemas.get(name)
+            sid = self._schemas.get(schema.name)
             if sid is None:
-                # the dataclass as a JSON Schema: field names, types and schema version, for any reader
-                schema = json.dumps(json_schema(cls)).encode() if cls is not None else b""
-                sid = self._schemas[name] = self._writer.register_schema(
-                    name=name, encoding=SchemaEncoding.JSONSchema if cls is not None else "", data=schema)
-            ch = self._channels[key] = self._writer.register_channel(
-                topic=key, message_encoding=MessageEncoding.MessagePack, schema_id=sid)
-        return ch
-
-    def _ros2_channel(self, topic: str, datatype: str) -> int:
-        ch = self._channels.get(topic)
-        if ch is None:
-            if datatype not in self._encoders:
-                text = msgdef(datatype)
-                self._schemas[datatype] = self._writer.register_schema(
-                    name=datatype, encoding=SchemaEncoding.ROS2, data=text.encode())
-                self._encoders[datatype] = serialize_dynamic(datatype, text)[datatype]
+                sid = self._schemas[schema.name] = self._writer.register_schema(
+                    name=schema.name, encoding=schema.encoding, data=schema.data)
             ch = self._channels[topic] = self._writer.register_channel(
-                topic=topic, message_encoding=MessageEncoding.CDR, schema_id=self._schemas[datatype])
-        return ch
-
-    def _json_channel(self, topic: str, schema_name: str) -> int:
-        ch = self._channels.get(topic)
-        if ch is None:
-            if schema_name not in self._schemas:
-                self._schemas[schema_name] = self._writer.register_schema(
-                    name=schema_name, encoding=SchemaEncoding.JSONSchema,
-                    data=json.dumps(JSON_SCHEMAS[schema_name]).encode())
-            ch = self._channels[topic] = self._writer.register_channel(
-                topic=topic, message_encoding=MessageEncoding.JSON, schema_id=self._schemas[schema_name])
+                topic=topic, message_encoding=schema.message_encoding, schema_id=sid)
         return ch
 
     def _add(self, ch: int, key: str, data: bytes, t_ns: int) -> None:
@@ -144,15 +113,11 @@ class McapRecorder:
                     continue
                 self._rejected_bytes += len(data)
             try:
-                self._add(self._channel(key), key, data, t_ns)
+                self._add(self._channel(key, project_schema(keys.message_type(key))), key, data, t_ns)
                 if self.ros2 is not None and msg is not None:
                     for r in self.ros2.convert(msg):
-                        if r.encoding == "json":
-                            self._add(self._json_channel(r.topic, r.datatype), r.topic,
-                                      json.dumps(r.message).encode(), t_ns)
-                        else:
-                            self._add(self._ros2_channel(r.topic, r.datatype), r.topic,
-                                      self._encoders[r.datatype](r.message), t_ns)
+                        self._add(self._channel(r.topic, self._topics.schema(r)), r.topic, self._topics.encode(r),
+                                  t_ns)
             except Exception:  # keep recording the rest
                 log.exception("cannot record message on %s", key)
 

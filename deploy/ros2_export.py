@@ -44,6 +44,19 @@ JSON_SCHEMAS = {TRACKING: {
                    "solve_ms": {"type": "number"}}}}
 
 
+# every topic a run can have but the camera's (raw or compressed, depending on the frames), with its type
+TOPICS = {"/tf": "tf2_msgs/TFMessage", "/odom": "nav_msgs/Odometry", "/cmd_vel": "geometry_msgs/TwistStamped",
+          "/route": "nav_msgs/Path", "/corridor": "visualization_msgs/MarkerArray",
+          "/controller/horizon": "visualization_msgs/MarkerArray",
+          "/localization/pose": "geometry_msgs/PoseWithCovarianceStamped", "/controller/tracking": TRACKING}
+
+
+def announcement(topic: str) -> Ros2Message:
+    """An empty message of one of TOPICS: what a channel for it needs to be declared before data flows."""
+    datatype = TOPICS[topic]
+    return Ros2Message(topic, datatype, {}, 0.0, "json" if datatype in JSON_SCHEMAS else "cdr")
+
+
 def _time(stamp_s: float) -> dict:
     sec = math.floor(stamp_s)
     return {"sec": int(sec), "nanosec": min(int(round((stamp_s - sec) * 1e9)), 999_999_999)}

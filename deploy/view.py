@@ -8,7 +8,6 @@ for a route the first time an estimate on it arrives: the map, corridor and esti
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import queue
@@ -17,22 +16,20 @@ import time
 
 import foxglove
 import zenoh
-from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap_ros2._dynamic import serialize_dynamic
 
 from common import keys
 from common.bus import query
 from common.codec import Decoder, encode
 from common.messages import LocState, RouteMsg
-from deploy.json_schema import json_schema
-from deploy.ros2_export import JSON_SCHEMAS, Ros2Export, Ros2Message
-from deploy.ros2_msgs import msgdef
+from deploy.ros2_export import TOPICS, Ros2Export, Ros2Message, announcement
+from deploy.wire import TopicEncoder, WireSchema, project_schema
 
 log = logging.getLogger(__name__)
 
 MAX_BACKLOG = 10_000          # messages waiting to be served; beyond, the newest are dropped and counted
 LATCHED = ("/route", "/corridor")   # published once per route: a viewer that subscribes later gets the last one
 RELOG = "__relog__"
+LATCH_REPEAT_S = 2.0          # ... and, for a viewer that subscribed in a race, again this often
 ROUTE_RETRY_S = 5.0           # a route not available yet (still being taught) is asked for again after this
 
 
@@ -52,13 +49,17 @@ class LiveView:
         self.decoder = Decoder(log)
         self.exports: dict[str, Ros2Export] = {}     # per robot
         self.channels: dict[str, foxglove.Channel] = {}
-        self.encoders: dict = {}
+        self.topics = TopicEncoder()
         self.routes_served: set[str] = set()
         self.route_asked: dict[str, float] = {}      # path_id -> when last asked (monotonic)
         self.latched: dict[str, bytes] = {}          # topic -> its last message, for viewers that come later
         self.listener = _Listener(self)
         self.served = 0
         self.dropped = 0
+        # the standard topics' channels exist before any viewer connects: it gets them in its first
+        # advertisement (a channel declared while a viewer is subscribing could be refused as unknown)
+        for topic in TOPICS:
+            self._get(topic, self.topics.schema(announcement(topic)))
         self._queue: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="view", daemon=True)
         self._thread.start()
@@ -88,6 +89,12 @@ class LiveView:
         if topic in LATCHED or topic.startswith(f"{keys.ROOT}/paths/"):
             self._queue.put((RELOG, topic))
 
+    def repeat_latched(self) -> None:
+        """Every latched topic's last message again: the server may call on_subscribe before the
+        subscription takes effect, and a viewer must not miss the map for that."""
+        for topic in list(self.latched):
+            self._queue.put((RELOG, topic))
+
     def _relog(self, topic: str) -> None:
         if topic in self.latched:
             self.channels[topic].log(self.latched[topic])
@@ -97,7 +104,7 @@ class LiveView:
         msg = self.decoder(cls, data, key) if cls is not None else None
         if msg is None:
             return
-        self._channel(key, cls).log(data)
+        self._get(key, project_schema(cls)).log(data)
         robot = key.split("/")[1]
         if isinstance(msg, LocState) and msg.status != "teach" and msg.path_id not in self.routes_served:
             now = time.monotonic()
@@ -117,7 +124,8 @@ class LiveView:
         for rep in query(self.session, keys.route(path_id), timeout_s=5.0):
             route = self.decoder(RouteMsg, rep.payload, keys.route(path_id)) if rep.error is None else None
             if route is not None:
-                self._log_raw(self._channel(keys.route(path_id), RouteMsg), keys.route(path_id), encode(route))
+                self._log_raw(self._get(keys.route(path_id), project_schema(RouteMsg)), keys.route(path_id),
+                              encode(route))
                 for r in self._export(robot).convert(route):
                     self._log(r)
                 self.routes_served.add(path_id)
@@ -126,35 +134,19 @@ class LiveView:
                     path_id, ROUTE_RETRY_S)
 
     def _log(self, r: Ros2Message) -> None:
-        if r.encoding == "json":
-            ch = self._get(r.topic, lambda: foxglove.Channel(
-                r.topic, message_encoding=MessageEncoding.JSON, context=self.context,
-                schema=foxglove.Schema(name=r.datatype, encoding=SchemaEncoding.JSONSchema,
-                                       data=json.dumps(JSON_SCHEMAS[r.datatype]).encode())))
-            self._log_raw(ch, r.topic, json.dumps(r.message).encode())
-            return
-        if r.datatype not in self.encoders:
-            self.encoders[r.datatype] = serialize_dynamic(r.datatype, msgdef(r.datatype))[r.datatype]
-        ch = self._get(r.topic, lambda: foxglove.Channel(
-            r.topic, message_encoding=MessageEncoding.CDR, context=self.context,
-            schema=foxglove.Schema(name=r.datatype, encoding=SchemaEncoding.ROS2, data=msgdef(r.datatype).encode())))
-        self._log_raw(ch, r.topic, self.encoders[r.datatype](r.message))
+        self._log_raw(self._get(r.topic, self.topics.schema(r)), r.topic, self.topics.encode(r))
 
     def _log_raw(self, ch: foxglove.Channel, topic: str, data: bytes) -> None:
         if topic in LATCHED or topic.startswith(f"{keys.ROOT}/paths/"):
             self.latched[topic] = data
         ch.log(data)
 
-    def _channel(self, key: str, cls: type) -> foxglove.Channel:
-        return self._get(key, lambda: foxglove.Channel(
-            key, message_encoding=MessageEncoding.MessagePack, context=self.context,
-            schema=foxglove.Schema(name=cls.__name__, encoding=SchemaEncoding.JSONSchema,
-                                   data=json.dumps(json_schema(cls)).encode())))
-
-    def _get(self, topic: str, make) -> foxglove.Channel:
+    def _get(self, topic: str, schema: WireSchema) -> foxglove.Channel:
         ch = self.channels.get(topic)
         if ch is None:
-            ch = self.channels[topic] = make()
+            ch = self.channels[topic] = foxglove.Channel(
+                topic, message_encoding=schema.message_encoding, context=self.context,
+                schema=foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data))
         return ch
 
     def close(self) -> None:
@@ -188,8 +180,8 @@ def serve(endpoint: str, zenoh_conf: str | dict | None, corridor_lateral_m: floa
     say(f"serving the bus at {endpoint} to Foxglove on ws://{address}:{server.port} (open a connection there; "
         "layout deploy/foxglove/lbc-run.json; Ctrl-C stops)")
     try:
-        while not stop.wait(1.0):
-            pass
+        while not stop.wait(LATCH_REPEAT_S):
+            view.repeat_latched()
     finally:
         view.close()
         server.stop()

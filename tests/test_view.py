@@ -90,7 +90,8 @@ def test_a_foxglove_client_sees_at_least_9_of_10_control_ticks_live(deployment):
         assert ad["/cmd_vel"]["encoding"] == "cdr" and ad["/cmd_vel"]["schemaName"] == "geometry_msgs/TwistStamped"
         assert ad["/controller/tracking"]["encoding"] == "json"
         assert ad["lbc/r1/cmd/vel"]["encoding"] == "msgpack" and ad["lbc/r1/cmd/vel"]["schemaEncoding"] == "jsonschema"
-        assert client.received["/route"], "the view fetched the taught route for the map"
+        wait_until(lambda: client.received["/route"], 10, "the taught route for the map (latched)",
+                   lambda: "".join(filter(None, view.lines))[-2000:] + f" advertised {sorted(client.advertised)}")
         tracking = [json.loads(p) for p in client.received["/controller/tracking"]]
         assert tracking and max(abs(t["lateral_m"]) for t in tracking) < 0.2
     finally:
