@@ -3,6 +3,7 @@ messages as they travelled (msgpack, their dataclass as a JSON Schema) and the t
 (ros2_export.py: CDR with a ros2msg schema, or JSON with a JSON Schema)."""
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
 
@@ -22,6 +23,7 @@ class WireSchema:
     message_encoding: str      # cdr, json, msgpack
 
 
+@functools.cache            # called for every message recorded or served: build each schema once
 def project_schema(cls: type | None) -> WireSchema:
     """A project channel's schema; None: a key no message type belongs to (traffic no service accepts)."""
     if cls is None:
@@ -35,12 +37,16 @@ class TopicEncoder:
 
     def __init__(self):
         self._cdr: dict = {}
+        self._schemas: dict[tuple[str, str], WireSchema] = {}
 
     def schema(self, r: Ros2Message) -> WireSchema:
-        if r.encoding == "json":
-            return WireSchema(r.datatype, SchemaEncoding.JSONSchema, json.dumps(JSON_SCHEMAS[r.datatype]).encode(),
-                              MessageEncoding.JSON)
-        return WireSchema(r.datatype, SchemaEncoding.ROS2, msgdef(r.datatype).encode(), MessageEncoding.CDR)
+        key = (r.datatype, r.encoding)
+        if key not in self._schemas:
+            self._schemas[key] = (
+                WireSchema(r.datatype, SchemaEncoding.JSONSchema, json.dumps(JSON_SCHEMAS[r.datatype]).encode(),
+                           MessageEncoding.JSON) if r.encoding == "json" else
+                WireSchema(r.datatype, SchemaEncoding.ROS2, msgdef(r.datatype).encode(), MessageEncoding.CDR))
+        return self._schemas[key]
 
     def encode(self, r: Ros2Message) -> bytes:
         if r.encoding == "json":
