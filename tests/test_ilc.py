@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 
 from bench.closed_loop import ClosedLoop
+from common.robot import PRESETS
 from common.scenario import TerrainPatch
-from services.controller.fl import FLGains
+from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.ilc import ILCGains, ILCLaw, ILCMemory
+from services.controller.ilc_lifted import ILCPlant, lifted_model, norm_optimal_change
 from services.localizer.pose_source import PoseSourceSettings
 
 
@@ -77,3 +79,85 @@ def test_without_learning_ilc_repeats_its_first_trial():
     res = trials(learning=False, n=3)
     lat = [r[0] for r in res]
     assert max(lat) - min(lat) < 0.15 * lat[0], res
+
+
+# --- the lifted update (ilc_lifted.py) -------------------------------------------------------------
+def _reference_response(v: float, spacing: float, n: int, pulse_at: int, amp: float, tau: float, delay_s: float,
+                        fl: FLGains, h: float = 0.001) -> np.ndarray:
+    """Lateral error at every vertex of a straight route driven at v by FL on estimates delay_s old
+    (a true delay, not a Pade approximation), turn rate through a first-order lag tau, with w_ff = amp
+    held over vertex interval `pulse_at`: Euler integration of the unicycle, independent of the lifted model."""
+    steps = int(round(n * spacing / v / h))
+    lag_n = int(round(delay_s / h))
+    y = th = wa = 0.0
+    hist = [(0.0, 0.0)] * (lag_n + 1)
+    xs, ys = [0.0], [0.0]
+    for k in range(steps):
+        x = v * k * h
+        ey, eth = hist[-lag_n - 1] if lag_n else (y, th)
+        w_ff = amp if int(x / spacing + 1e-9) == pulse_at else 0.0
+        w_cmd = fl_angular_rate(v, ey, eth, 0.0, fl) + w_ff
+        wa += h * (w_cmd - wa) / tau
+        y += h * v * math.sin(th)
+        th += h * wa
+        hist.append((y, th))
+        hist = hist[-(lag_n + 1):]
+        xs.append(x + v * h)
+        ys.append(y)
+    return np.interp(np.arange(n) * spacing, xs, ys)
+
+
+@pytest.mark.parametrize("tau,delay", [(0.1, 0.0), (0.4, 0.0), (0.4, 0.15)])
+def test_lifted_model_predicts_the_closed_loop_response_to_a_feedforward_pulse(tau, delay):
+    fl, v, spacing, n = FLGains(), 1.2, 0.25, 80
+    GL, _ = lifted_model(np.full(n - 1, spacing), np.full(n, v), ILCPlant(fl, tau_w_s=tau, delay_s=delay))
+    for at in (5, 30):
+        ref = _reference_response(v, spacing, n, at, 0.02, tau, delay, fl)
+        pred = 0.02 * GL[:, at]
+        assert np.all(pred[:at + 1] == 0.0)                     # causal: nothing before the pulse acts
+        scale = np.max(np.abs(ref))
+        # measured 0.3-0.4 % (the delay as a first-order Pade approximation included); a model without the
+        # lag or the delay misses by 9-39 %
+        assert np.max(np.abs(pred - ref)) < 0.02 * scale, (at, np.max(np.abs(pred - ref)) / scale)
+
+
+def test_norm_optimal_change_cancels_a_repeating_error_of_the_model_at_the_rate_of_its_step():
+    n = 60
+    GL, GH = lifted_model(np.full(n - 1, 0.25), np.full(n, 1.0), ILCPlant(FLGains(), tau_w_s=0.3, delay_s=0.1))
+    disturbance = 0.3 * np.sin(np.linspace(0, 3 * np.pi, n)) * (np.arange(n) > 5)   # a repeating push (rad/s)
+    wt = ILCGains().weights()
+    w = np.zeros(n)
+    norms = []
+    for _ in range(6):
+        e_lat, e_head = GL @ (w - disturbance), GH @ (w - disturbance)
+        norms.append(float(np.linalg.norm(e_lat)))
+        w = w + norm_optimal_change(w, e_lat, e_head, np.ones(n, dtype=bool), GL, GH, wt)
+    assert all(b < a for a, b in zip(norms, norms[1:])), norms
+    assert norms[-1] < 0.1 * norms[0], norms
+
+
+def lifted_trials(preset, route, terrain, speed, learning_update, n=6, seed=3):
+    sim = ClosedLoop(route, terrain, preset=preset, seed=seed, teach_speed=0.6,
+                     loc=PoseSourceSettings(noise_m=0.015, delay_ticks=1))
+    path = sim.teach()
+    gains = ILCGains(update=learning_update)
+    mem, out = ILCMemory("route", len(path)), []
+    tau = PRESETS[preset].tau_w_s
+    for t in range(1, n + 1):
+        r = sim.repeat(t, speed, law=ILCLaw(FLGains(), mem), ic_vertices=gains.ic_vertices)
+        out.append(r.max_lateral)
+        mem.update(gains, ILCPlant(FLGains(), tau_w_s=tau, delay_s=mem.mean_age_s), np.diff(path.s))
+    return out
+
+
+def test_lifted_ilc_learns_where_the_thesis_law_does_not_on_a_lagging_heavy_robot():
+    """A 900 kg Grizzly (0.4 s turn-rate lag) at 1.2 m/s over a side slope and rough ground: the lifted
+    update cuts the max lateral error >= 3x in six trials (measured 47.6 -> 11.6 cm); eq. 3.14 with its
+    fixed lookahead does not converge there (47.6 -> 54.8 cm)."""
+    route = [[0, 0], [15, 0], [25, 8], [40, 8], [50, 0]]
+    terrain = [TerrainPatch(kind="side_slope", center=(20.0, 4.0), radius_m=7.0, slope_deg=12.0, downhill_deg=-60.0),
+               TerrainPatch(kind="rough", center=(40.0, 8.0), radius_m=5.0, amplitude=0.12)]
+    lifted = lifted_trials("grizzly", route, terrain, 1.2, "lifted")
+    assert lifted[-1] <= lifted[0] / 3.0, lifted
+    thesis = lifted_trials("grizzly", route, terrain, 1.2, "thesis")
+    assert thesis[-1] > 0.6 * thesis[0], thesis

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path as FsPath
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 
@@ -24,21 +24,35 @@ from common.atomic_file import write_atomically
 from common.codec import Message, decode, encode
 from common.messages import check_name
 from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.ilc_lifted import ILCPlant, LiftedWeights, lifted_model, mean_speeds, norm_optimal_change
 from services.controller.laws import LawResult, StepContext
 
 
 @dataclass(frozen=True, kw_only=True)
 class ILCGains:
-    """Eq. 3.14-3.16 gains; also the controller config's [ilc] table."""
-    gamma_L: float = 0.8      # rad/s per m of lookahead lateral error
-    gamma_H: float = 0.4      # rad/s per unit sin(heading error)
+    """The update's settings; also the controller config's [ilc] table. `update = "lifted"` (default):
+    the norm-optimal change from the lifted model of the closed loop (ilc_lifted.py), whose drive lag
+    and estimate age come from the identified model and the trial; `"thesis"`: eq. 3.14-3.15 with the
+    gains below."""
+    update: Literal["lifted", "thesis"] = "lifted"
+    gamma_L: float = 0.8      # thesis: rad/s per m of lookahead lateral error
+    gamma_H: float = 0.4      # thesis: rad/s per unit sin(heading error)
     gamma_u: float = 1.0      # forgetting factor (thesis exp. 1: 1.0; < 1 forgets non-repeating disturbances)
-    lookahead: int = 4        # kappa, vertices
+    lookahead: int = 4        # thesis: kappa, vertices
     ic_vertices: int = 8      # m_ic of eq. 3.16
+    step: float = LiftedWeights.step      # lifted: share of the optimal change taken per trial
+    q_head: float = LiftedWeights.q_head  # lifted: weight of heading (1/rad^2) against lateral error (1/m^2)
 
     def __post_init__(self):
         if self.lookahead < 1 or self.ic_vertices < 0 or not 0.0 <= self.gamma_u <= 1.0:
             raise ValueError("lookahead >= 1, ic_vertices >= 0 and gamma_u in [0, 1] required")
+        if self.update not in ("lifted", "thesis"):
+            raise ValueError(f"update must be 'lifted' or 'thesis', not {self.update!r}")
+        if not 0.0 < self.step <= 1.0 or self.q_head < 0:
+            raise ValueError("step in (0, 1] and q_head >= 0 required")
+
+    def weights(self) -> LiftedWeights:
+        return LiftedWeights(q_head=self.q_head, step=self.step)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -60,10 +74,19 @@ class ILCMemory:
         self.trials = trials
         self._sum = np.zeros((n_vertices, 2))
         self._count = np.zeros(n_vertices)
+        self._speed = np.zeros(n_vertices)
+        self._age = (0.0, 0)         # sum of the estimates' ages, steps
 
-    def record(self, vertex: int, e_lat: float, e_head: float) -> None:
+    def record(self, vertex: int, e_lat: float, e_head: float, v_mps: float = 0.0, age_s: float = 0.0) -> None:
         self._sum[vertex] += (e_lat, e_head)
         self._count[vertex] += 1
+        self._speed[vertex] += v_mps
+        self._age = (self._age[0] + age_s, self._age[1] + 1)
+
+    @property
+    def mean_age_s(self) -> float:
+        """The mean age of the estimates the feedback used this trial."""
+        return self._age[0] / self._age[1] if self._age[1] else 0.0
 
     def vertex_errors(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean (e_L, e_H) per vertex this trial, and which vertices were seen."""
@@ -72,9 +95,23 @@ class ILCMemory:
         mean[seen] = self._sum[seen] / self._count[seen, None]
         return mean, seen
 
-    def update(self, gains: ILCGains) -> float:
-        """Eq. 3.14-3.15 from this trial's errors; returns the largest change (rad/s). Vertices the robot
-        never reached keep their feedforward (only the forgetting factor applies)."""
+    def update(self, gains: ILCGains, plant: ILCPlant | None = None, distances_m: np.ndarray | None = None) -> float:
+        """The feedforward for the next trial from this trial's errors; returns the largest change
+        (rad/s). `plant` and the route's vertex `distances_m` are the lifted update's (without them, or
+        with gains.update = "thesis": eq. 3.14-3.15). Vertices the robot never reached keep their
+        feedforward (only the forgetting factor applies)."""
+        if gains.update == "lifted" and plant is not None and distances_m is not None:
+            return self._update_lifted(gains, plant, distances_m)
+        return self._update_thesis(gains)
+
+    def _update_lifted(self, gains: ILCGains, plant: ILCPlant, distances_m: np.ndarray) -> float:
+        err, seen = self.vertex_errors()
+        speeds = mean_speeds(self._speed, self._count, 1.0)
+        GL, GH = lifted_model(distances_m, speeds, plant)
+        dw = norm_optimal_change(self.w_ff, err[:, 0], err[:, 1], seen, GL, GH, gains.weights())
+        return self._apply(gains.gamma_u * self.w_ff + dw)
+
+    def _update_thesis(self, gains: ILCGains) -> float:
         err, seen = self.vertex_errors()
         n, kappa = len(self.w_ff), max(1, gains.lookahead)
         # lookahead means over i+1..i+kappa of the vertices that were seen
@@ -88,11 +125,17 @@ class ILCMemory:
         eps[ok] = (csum[hi] - csum[lo])[ok] / cnt[ok, None]
         new = gains.gamma_u * self.w_ff
         new[ok] += (-gains.gamma_L * eps[ok, 0] - gains.gamma_H * np.sin(eps[ok, 1])) / np.cos(eps[ok, 1])
-        change = float(np.max(np.abs(new - self.w_ff))) if n else 0.0
+        return self._apply(new)
+
+    def _apply(self, new: np.ndarray) -> float:
+        """Take `new` as the feedforward, start a new trial's record; the largest change."""
+        change = float(np.max(np.abs(new - self.w_ff))) if len(new) else 0.0
         self.w_ff = new
         self.trials += 1
         self._sum[:] = 0.0
         self._count[:] = 0.0
+        self._speed[:] = 0.0
+        self._age = (0.0, 0)
         return change
 
     # --- persistence -------------------------------------------------------------------------
@@ -130,6 +173,6 @@ class ILCLaw:
         kappa = float(ctx.path.curvature[ctx.vertex])
         w_fb = fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.fl)
         w_ff = float(self.memory.w_ff[ctx.vertex])
-        self.memory.record(ctx.vertex, ctx.e_lat_m, ctx.e_head_rad)
+        self.memory.record(ctx.vertex, ctx.e_lat_m, ctx.e_head_rad, ctx.v_mps, ctx.loc_age_s)
         return LawResult(w_fb + w_ff, feedforward_radps=w_ff)
 

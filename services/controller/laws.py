@@ -44,6 +44,7 @@ class StepContext:
     # per horizon step, the factor on the predicted standard deviations from the online check of the
     # predicted spread (calibration.py); empty: none
     spread_factors: tuple[float, ...] = ()
+    loc_age_s: float = 0.0               # how old `pose` is (now - its capture): what the feedback lags by
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from services.controller.config import ControllerConfig, StoreClientConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
 from services.controller.ilc import ILCMemory
+from services.controller.ilc_lifted import ILCPlant
 from services.controller.laws import SteeringLaw
 from services.controller.local_model import LocalModels
 from services.controller.nominal_models import NominalModels
@@ -169,10 +170,10 @@ class ControllerService(Service):
             self.cache.set_model(tag)
 
     def _stop_repeat(self, ctl: Control) -> None:
-        if self.core is not None:
-            self.calibrations[(self.path_id, self.model_tag)] = self.core.calibration
-        self.core = None
-        notes = [self._learn_ilc()] if self.ilc is not None else []
+        core, self.core = self.core, None
+        if core is not None:
+            self.calibrations[(self.path_id, self.model_tag)] = core.calibration
+        notes = [self._learn_ilc(core)] if self.ilc is not None and core is not None else []
         self.ilc = None
         if self.outbox is not None:
             # a sync point for the runner: everything this trial produced is stored once we answer
@@ -249,11 +250,14 @@ class ControllerService(Service):
                       "route)", msg.path_id, msg.from_m, msg.to_m, msg.right_m, msg.left_m,
                       math.degrees(msg.heading_rad), changed)
 
-    def _learn_ilc(self) -> str:
-        """Eq. 3.14 after a trial, saved per route; nothing is learned when learning is off."""
+    def _learn_ilc(self, core: ControllerCore) -> str:
+        """The feedforward for the next trial (ilc.py), saved per route; nothing is learned when learning is
+        off. The lifted update's model of the loop: the FL gains, the drive lag the trial ran with (the
+        identified one unless set by hand) and the estimates' mean age."""
         if not self.learning:
             return "ILC learning off: feedforward unchanged"
-        change = self.ilc.update(self.cfg.ilc)
+        plant = ILCPlant(self.gains, tau_w_s=core.tracker.lag.tau_w_s, delay_s=self.ilc.mean_age_s)
+        change = self.ilc.update(self.cfg.ilc, plant, np.diff(core.path.s))
         where = self.ilc.save(FsPath(self.cfg.data_dir) / "ilc")
         return f"ILC feedforward updated (trial {self.ilc.trials}, largest change {change:.3f} rad/s), saved to {where}"
 

@@ -178,7 +178,7 @@ class PathTracker:
                           prev_pose=prev_pose, w_limit=self.limits.w_limit(v), w_limit_at=self.limits.w_limit,
                           delayed_cmds=delayed, cmd_before_capture=before, xi_capture=xi_capture, xi_now=xi_now,
                           pose_cov=self.route_cov(last), corridor=self.corridor, v_max_mps=self.limits.v_max_mps,
-                          spread_factors=spread_factors)
+                          spread_factors=spread_factors, loc_age_s=age)
         res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
