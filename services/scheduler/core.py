@@ -12,6 +12,11 @@ lateral and heading error, commanded angular rate and matched features (4.2.2). 
 4. acceleration and deceleration limits (eq. 4.4, vertex distances of eq. 4.5), applied as a forward
    and a backward sweep so that every pair of neighbours satisfies them (one pass of eq. 4.4 with the
    suggested neighbours, as printed, would not guarantee that along a chain of changes).
+   The thesis's DMRV used a_max = 0.2 and a_min = -0.05 m/s^2 (4.3.2) with the single pass, which holds
+   back only the vertex just before a slower one. Swept, -0.05 makes a robot at 2 m/s start slowing 38 m
+   ahead of every slower section and of the end segment: most of a 30-120 m route. The default deceleration
+   is therefore as gentle as the acceleration, -0.2 m/s^2 (2 -> 0.4 m/s in 9.6 m); set a_min = -0.05 for
+   the thesis's experiments (examples/sched-mats.toml does).
 
 Beyond the thesis (its 4.4 discussion): with `use_all_trials`, a vertex is never raised to a speed at
 which an earlier trial violated a criterion there; past experience caps the increases.
@@ -68,7 +73,7 @@ class SchedulerParams:
     lambda_feat: float = 30.0
     lambda_db: float = 1.1
     a_max: float = 0.2           # m/s^2
-    a_min: float = -0.05         # m/s^2 (< 0)
+    a_min: float = -0.2          # m/s^2 (< 0); the thesis's -0.05 was for eq. 4.4 applied once (module doc)
     v_start: float = 0.4         # speed limit over the first start_m metres
     start_m: float = 5.0
     v_end: float = 0.4           # ... and the last end_m metres
