@@ -107,10 +107,20 @@ def _reference_response(v: float, spacing: float, n: int, pulse_at: int, amp: fl
     return np.interp(np.arange(n) * spacing, xs, ys)
 
 
+def dense(band: np.ndarray) -> np.ndarray:
+    """G (N, N) from its band form: band[r, d] = G[r, r - 1 - d]."""
+    n, B = band.shape
+    G = np.zeros((n, n))
+    for r in range(1, n):
+        for d in range(min(B, r)):
+            G[r, r - 1 - d] = band[r, d]
+    return G
+
+
 @pytest.mark.parametrize("tau,delay", [(0.1, 0.0), (0.4, 0.0), (0.4, 0.15)])
 def test_lifted_model_predicts_the_closed_loop_response_to_a_feedforward_pulse(tau, delay):
     fl, v, spacing, n = FLGains(), 1.2, 0.25, 80
-    GL, _ = lifted_model(np.full(n - 1, spacing), np.full(n, v), ILCPlant(fl, tau_w_s=tau, delay_s=delay))
+    GL = dense(lifted_model(np.full(n - 1, spacing), np.full(n, v), ILCPlant(fl, tau_w_s=tau, delay_s=delay)).lat)
     for at in (5, 30):
         ref = _reference_response(v, spacing, n, at, 0.02, tau, delay, fl)
         pred = 0.02 * GL[:, at]
@@ -123,7 +133,8 @@ def test_lifted_model_predicts_the_closed_loop_response_to_a_feedforward_pulse(t
 
 def test_norm_optimal_change_cancels_a_repeating_error_of_the_model_at_the_rate_of_its_step():
     n = 60
-    GL, GH = lifted_model(np.full(n - 1, 0.25), np.full(n, 1.0), ILCPlant(FLGains(), tau_w_s=0.3, delay_s=0.1))
+    model = lifted_model(np.full(n - 1, 0.25), np.full(n, 1.0), ILCPlant(FLGains(), tau_w_s=0.3, delay_s=0.1))
+    GL, GH = dense(model.lat), dense(model.head)
     disturbance = 0.3 * np.sin(np.linspace(0, 3 * np.pi, n)) * (np.arange(n) > 5)   # a repeating push (rad/s)
     wt = ILCGains().weights()
     w = np.zeros(n)
@@ -131,9 +142,39 @@ def test_norm_optimal_change_cancels_a_repeating_error_of_the_model_at_the_rate_
     for _ in range(6):
         e_lat, e_head = GL @ (w - disturbance), GH @ (w - disturbance)
         norms.append(float(np.linalg.norm(e_lat)))
-        w = w + norm_optimal_change(w, e_lat, e_head, np.ones(n, dtype=bool), GL, GH, wt)
+        w = w + norm_optimal_change(w, e_lat, e_head, np.ones(n, dtype=bool), model, wt)
     assert all(b < a for a, b in zip(norms, norms[1:])), norms
     assert norms[-1] < 0.1 * norms[0], norms
+
+
+def test_the_banded_solve_is_the_dense_least_squares_change_and_the_band_is_short():
+    """Against the normal equations of the cost written out densely (numpy lstsq of the stacked
+    residuals), on a 300-vertex route at varying speed with unseen vertices at its end."""
+    rng = np.random.default_rng(3)
+    n = 300
+    speeds = 0.6 + 0.8 * (np.arange(n) / n)
+    model = lifted_model(np.full(n - 1, 0.25), speeds, ILCPlant(FLGains(), tau_w_s=0.35, delay_s=0.12))
+    assert model.bandwidth < 120                     # the loop forgets a pulse within ~10 s
+    GL, GH = dense(model.lat), dense(model.head)
+    seen = np.arange(n) < 280
+    e_lat, e_head = 0.1 * rng.standard_normal(n) * seen, 0.05 * rng.standard_normal(n) * seen
+    w = 0.1 * rng.standard_normal(n)
+    wt = ILCGains().weights()
+    got = norm_optimal_change(w, e_lat, e_head, seen, model, wt)
+    # reference: min over dw[:f] of |q (e + G dw)|^2 + rho s |dw|^2 + rho_d s |D (w + dw)|^2, s the mean
+    # diagonal of G^T Q G over the changeable vertices
+    f = int(np.flatnonzero(seen)[-1])
+    q = seen.astype(float)
+    Hd = GL.T @ (q[:, None] * GL) + wt.q_head * GH.T @ (q[:, None] * GH)
+    s = np.mean(np.diag(Hd)[:f])
+    D = np.diff(np.eye(n), axis=0)
+    A = np.vstack([np.sqrt(q)[:, None] * GL[:, :f], math.sqrt(wt.q_head) * np.sqrt(q)[:, None] * GH[:, :f],
+                   math.sqrt(wt.rho * s) * np.eye(f), math.sqrt(wt.rho_diff * s) * D[:, :f]])
+    b = -np.concatenate([np.sqrt(q) * e_lat, math.sqrt(wt.q_head) * np.sqrt(q) * e_head, np.zeros(f),
+                         math.sqrt(wt.rho_diff * s) * (D @ w)])
+    ref = np.zeros(n)
+    ref[:f] = wt.step * np.linalg.lstsq(A, b, rcond=None)[0]
+    np.testing.assert_allclose(got, ref, atol=1e-9 * np.max(np.abs(ref)) + 1e-12, rtol=1e-6)
 
 
 def lifted_trials(preset, route, terrain, speed, learning_update, n=6, seed=3):

@@ -107,8 +107,8 @@ class ILCMemory:
     def _update_lifted(self, gains: ILCGains, plant: ILCPlant, distances_m: np.ndarray) -> float:
         err, seen = self.vertex_errors()
         speeds = mean_speeds(self._speed, self._count, 1.0)
-        GL, GH = lifted_model(distances_m, speeds, plant)
-        dw = norm_optimal_change(self.w_ff, err[:, 0], err[:, 1], seen, GL, GH, gains.weights())
+        model = lifted_model(distances_m, speeds, plant)
+        dw = norm_optimal_change(self.w_ff, err[:, 0], err[:, 1], seen, model, gains.weights())
         return self._apply(gains.gamma_u * self.w_ff + dw)
 
     def _update_thesis(self, gains: ILCGains) -> float:

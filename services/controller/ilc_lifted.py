@@ -27,7 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
+from scipy.linalg import expm, solveh_banded
 
 from services.controller.fl import FLGains
 
@@ -73,21 +73,48 @@ def _discrete(v: float, dt: float, plant: ILCPlant) -> tuple[np.ndarray, np.ndar
     return E[:4, :4], E[:4, 4]
 
 
-def lifted_model(distances_m: np.ndarray, speeds_mps: np.ndarray, plant: ILCPlant) -> tuple[np.ndarray, np.ndarray]:
-    """(G_L, G_H), each (N, N): the change of e_L and e_H at vertex k per unit w_ff held from vertex i to
-    i + 1 (zero for k <= i). `distances_m[i]`: from vertex i to i + 1 (N - 1 of them); `speeds_mps[i]`:
-    the speed the robot passed vertex i at."""
+@dataclass(frozen=True)
+class LiftedModel:
+    """The lifted G_L and G_H in band form: lat[r, d] = G_L[r, r - 1 - d], the change of e_L at vertex r
+    per unit w_ff held over interval r - 1 - d (d = 0..B - 1); the same for heading. The closed loop
+    forgets a feedforward pulse within a few seconds, so G is a band of B intervals (the pulse's state
+    below RESPONSE_TOL of its peak beyond it), whatever the route's length."""
+    lat: np.ndarray           # (N, B)
+    head: np.ndarray          # (N, B)
+
+    @property
+    def n(self) -> int:
+        return self.lat.shape[0]
+
+    @property
+    def bandwidth(self) -> int:
+        return self.lat.shape[1]
+
+
+RESPONSE_TOL = 1e-6
+
+
+def lifted_model(distances_m: np.ndarray, speeds_mps: np.ndarray, plant: ILCPlant) -> LiftedModel:
+    """G_L and G_H of the route: `distances_m[i]` from vertex i to i + 1 (N - 1 of them), `speeds_mps[i]`
+    the speed the robot passed vertex i at. Zero-order hold of w_ff,i over interval i (eq. 3.6-3.8)."""
     n = len(speeds_mps)
     v = np.maximum(np.asarray(speeds_mps, dtype=float), MIN_SPEED_MPS)
-    GL, GH = np.zeros((n, n)), np.zeros((n, n))
-    M = np.zeros((4, n))                       # the state's sensitivity to each w_ff,i
+    rows: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(0), np.zeros(0))]   # vertex 0: nothing acts yet
+    M = np.zeros((4, 0))            # the state's sensitivity to w_ff of the active intervals, newest last
+    peak = np.zeros(0)
     for i in range(n - 1):
         Phi, Gam = _discrete(v[i], float(distances_m[i]) / v[i], plant)
-        M = Phi @ M
-        M[:, i] += Gam
-        GL[i + 1] = M[0]
-        GH[i + 1] = M[1] / v[i + 1]
-    return GL, GH
+        M = np.column_stack([Phi @ M, Gam])
+        size = np.max(np.abs(M), axis=0)
+        peak = np.maximum(np.append(peak, 0.0), size)
+        rows.append((M[0, ::-1].copy(), M[1, ::-1] / v[i + 1]))        # d = 0 first
+        keep = int(np.argmax(size >= RESPONSE_TOL * peak)) if np.any(size >= RESPONSE_TOL * peak) else len(size)
+        M, peak = M[:, keep:], peak[keep:]                              # the forgotten oldest pulses go
+    B = max(1, max(len(r[0]) for r in rows))
+    lat, head = np.zeros((n, B)), np.zeros((n, B))
+    for r, (gl, gh) in enumerate(rows):
+        lat[r, :len(gl)], head[r, :len(gh)] = gl, gh
+    return LiftedModel(lat, head)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -99,22 +126,54 @@ class LiftedWeights:
     step: float = 0.6           # share of the optimal change taken per trial
 
 
+def _gram(Gb: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(B, N) upper diagonals of G^T diag(q) G for G in band form: out[off, j] = (G^T q G)[j, j + off]."""
+    n, B = Gb.shape
+    out = np.zeros((B, n))
+    for off in range(B):
+        for d2 in range(B - off):
+            r0 = off + 1 + d2                      # G[r, j] = Gb[r, off + d2], G[r, j + off] = Gb[r, d2]
+            if r0 >= n:
+                break
+            out[off, :n - r0] += q[r0:] * Gb[r0:, off + d2] * Gb[r0:, d2]
+    return out
+
+
+def _transpose_times(Gb: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """G^T y for G in band form."""
+    n, B = Gb.shape
+    out = np.zeros(n)
+    for d in range(min(B, n - 1)):
+        out[:n - 1 - d] += Gb[1 + d:, d] * y[1 + d:]
+    return out
+
+
 def norm_optimal_change(w_ff: np.ndarray, e_lat: np.ndarray, e_head: np.ndarray, seen: np.ndarray,
-                        GL: np.ndarray, GH: np.ndarray, wt: LiftedWeights) -> np.ndarray:
+                        model: LiftedModel, wt: LiftedWeights) -> np.ndarray:
     """The feedforward change (N,) for the next trial from this trial's mean errors per vertex; vertices
-    not seen carry no error term and are not changed."""
+    not seen carry no error term and are not changed. A banded solve: linear in the route's length."""
     n = len(w_ff)
     q = seen.astype(float)
-    H = GL.T @ (q[:, None] * wt.q_lat * GL) + GH.T @ (q[:, None] * wt.q_head * GH)
-    scale = max(float(np.mean(np.diag(H))), 1e-12)
-    D = np.diff(np.eye(n), axis=0)
-    H = H + wt.rho * scale * np.eye(n) + wt.rho_diff * scale * (D.T @ D)
-    rhs = -(GL.T @ (q * wt.q_lat * e_lat) + GH.T @ (q * wt.q_head * e_head)) - wt.rho_diff * scale * (D.T @ (D @ w_ff))
-    free = _reachable(seen)
+    H = wt.q_lat * _gram(model.lat, q) + wt.q_head * _gram(model.head, q)
+    if H.shape[0] < 2:
+        H = np.vstack([H, np.zeros((1, n))])      # room for the first differences' off-diagonal
+    rhs = -(wt.q_lat * _transpose_times(model.lat, q * e_lat) + wt.q_head * _transpose_times(model.head, q * e_head))
+    free = int(np.sum(_reachable(seen)))
+    if free == 0:
+        return np.zeros(n)
+    scale = max(float(np.mean(H[0, :free])), 1e-12)
+    dtd_diag = np.full(n, 2.0)
+    dtd_diag[[0, -1]] = 1.0                       # D^T D of the first differences: tridiagonal
+    H[0] += wt.rho * scale + wt.rho_diff * scale * dtd_diag
+    H[1, :n - 1] -= wt.rho_diff * scale
+    dw_prev = np.diff(w_ff)
+    rhs -= wt.rho_diff * scale * (np.concatenate([[0.0], dw_prev]) - np.concatenate([dw_prev, [0.0]]))
+    u = H.shape[0] - 1
+    ab = np.zeros((u + 1, free))                  # solveh_banded's upper form: ab[u - off, j + off]
+    for off in range(u + 1):
+        ab[u - off, off:] = H[off, :free - off]
     dw = np.zeros(n)
-    if np.any(free):
-        idx = np.flatnonzero(free)
-        dw[idx] = np.linalg.solve(H[np.ix_(idx, idx)], rhs[idx])
+    dw[:free] = solveh_banded(ab, rhs[:free])
     return wt.step * dw
 
 
