@@ -6,7 +6,7 @@ from pathlib import Path
 
 from common.config import dump_toml
 from common.typecheck import to_dict
-from common.scenario import Scenario
+from common.scenario import ConstraintsSection, Scenario
 from services.bridge.config import BridgeConfig, ClockConfig, TeachConfig
 from services.controller.config import ControllerConfig, CorridorConfig, LimitsConfig, StoreClientConfig
 from services.controller.fl import FLGains
@@ -63,9 +63,19 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         params["v_max"] = min(params["v_max"], rp.v_max_mps)    # the robot's own limit is an a-priori one
         # the robot's turn-rate limit, for the scheduler's guard; a w_max written in [scheduler] is a ceiling
         params["w_max"] = rp.w_max_radps if params.get("w_max") is None else min(params["w_max"], rp.w_max_radps)
+        # the corridor is an a-priori limit too: errors the scheduler tolerates (up to its deadband) stay in it
+        lat_m, head_deg = narrowest_corridor(sc.constraints)
+        params["lambda_L"] = min(params["lambda_L"], lat_m / params["lambda_db"])
+        params["lambda_H"] = min(params["lambda_H"], head_deg / params["lambda_db"])
         configs["scheduler"] = SchedulerConfig(name="scheduler1", db_path=str(Path(data_dir) / "schedules.db"),
                                                params=SchedulerParams(**params), auto_after_trial=False)
     return configs
+
+
+def narrowest_corridor(c: ConstraintsSection) -> tuple[float, float]:
+    """(half-width m, heading limit deg) of the narrowest stretch of the corridor."""
+    lat = min([c.lateral_m] + [min(seg[2], -seg[3]) for seg in c.segments if min(seg[2], -seg[3]) > 0])
+    return lat, min([c.heading_deg] + [seg[4] for seg in c.segments])
 
 
 def write_service_configs(configs: dict[str, object], directory: str | Path) -> dict[str, Path]:

@@ -116,6 +116,19 @@ def test_the_sections_a_service_reads_are_its_own_settings():
     assert cfg["scheduler"].params.prune_min_m == 1.0
 
 
+def test_the_schedulers_error_limits_stay_inside_the_corridor_with_their_deadband():
+    """The corridor is an a-priori limit like the robot's speeds: a 0.12 m / 8 deg corridor (its narrowest
+    stretch 0.1 m) caps the thesis's lambda_L = 0.15 m and lambda_H = 10 deg so that lambda * lambda_db
+    (where eq. 4.2 starts to slow down) is the corridor; a wide corridor leaves them."""
+    narrow = parse_scenario(_minimal(scheduler={"enabled": True},
+                                     constraints={"lateral_m": 0.12, "heading_deg": 8.0,
+                                                  "segments": [[5.0, 8.0, 0.1, -0.3, 12.0]]}))
+    p = service_configs(narrow, "/tmp/unused")["scheduler"].params
+    assert p.lambda_L * p.lambda_db == pytest.approx(0.1) and p.lambda_H * p.lambda_db == pytest.approx(8.0)
+    wide = service_configs(parse_scenario(_minimal(scheduler={"enabled": True})), "/tmp/unused")["scheduler"].params
+    assert (wide.lambda_L, wide.lambda_H) == (0.15, 10.0)
+
+
 def test_robot_overrides_apply_to_the_preset():
     sc = parse_scenario(_minimal(robot={"preset": "grizzly", "name": "g1", "tau_v_s": 0.8}))
     assert sc.robot.name == "g1" and sc.robot.params.tau_v_s == 0.8 and sc.robot.params.mass_kg == 900.0
