@@ -415,6 +415,22 @@ def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit
     assert lost.v_mps == 0.0 and "uncertainty no longer fits" in lost.stop_reason
 
 
+def test_robust_law_steers_back_an_estimate_outside_by_less_than_its_own_sigma():
+    """0.21 m off a 0.2 m corridor with a 2 cm (1 sigma) estimate: the robot may well be inside; the law
+    steers back towards the route instead of stopping. 0.25 m off (2.5 sigma) it stops and says why."""
+    path = arc_path()
+    corridor = Corridor(path.s, 0.2, math.radians(15))
+    cov = np.diag([0.02 ** 2, 0.02 ** 2, 1e-4])
+    near = RCLBNMPCLaw(NMPCSettings(), DT).angular(ctx_for(path, path.pose_at(5.0) + np.array([0, 0.21, 0]),
+                                                           corridor=corridor, cov=cov))
+    start = path.project(path.pose_at(5.0) + np.array([0, 0.21, 0])).lateral_m
+    assert not near.stop_reason and near.v_mps > 0
+    assert path.project(near.predicted[-1]).lateral_m < start - 0.02        # heading back in
+    far = RCLBNMPCLaw(NMPCSettings(), DT).angular(ctx_for(path, path.pose_at(5.0) + np.array([0, 0.25, 0]),
+                                                          corridor=corridor, cov=cov))
+    assert far.v_mps == 0.0 and "by more than the estimate's 1 sigma" in far.stop_reason
+
+
 @pytest.mark.integration
 def test_rc_lb_nmpc_starting_outside_the_corridor_stops_and_says_why(tmp_path, scenario_file):
     """Through the real services: a repeat that starts 0.4 m off a 0.3 m corridor never moves."""

@@ -34,11 +34,17 @@ class Corridor:
         i = np.clip(np.searchsorted(self.s, np.asarray(s_m, dtype=float)), 0, len(self.s) - 1)
         return self.right[i], self.left[i], self.heading[i]
 
-    def contains(self, s_m: float, lateral_m: float, heading_rad: float) -> str:
-        """'' when (lateral, heading) is inside the corridor at s_m, else why not."""
+    def contains(self, s_m: float, lateral_m: float, heading_rad: float,
+                 tolerance: tuple[float, float] = (0.0, 0.0)) -> str:
+        """'' when (lateral, heading) is inside the corridor at s_m, or outside it by no more than
+        `tolerance` (m, rad), else why not."""
         lo, hi, h = (float(x) for x in self.at(s_m))
-        if not lo <= lateral_m <= hi:
-            return f"lateral error {lateral_m:+.3f} m outside the corridor [{lo:+.2f}, {hi:+.2f}] m"
-        if abs(heading_rad) > h:
-            return f"heading error {np.degrees(heading_rad):+.1f} deg outside the corridor (+-{np.degrees(h):.1f} deg)"
+        tol_lat, tol_head = tolerance
+        beyond = "" if tol_lat <= 0 and tol_head <= 0 else \
+            f" by more than the estimate's 1 sigma ({tol_lat:.3f} m, {np.degrees(tol_head):.1f} deg)"
+        if not lo - tol_lat <= lateral_m <= hi + tol_lat:
+            return f"lateral error {lateral_m:+.3f} m outside the corridor [{lo:+.2f}, {hi:+.2f}] m{beyond}"
+        if abs(heading_rad) > h + tol_head:
+            return (f"heading error {np.degrees(heading_rad):+.1f} deg outside the corridor "
+                    f"(+-{np.degrees(h):.1f} deg){beyond}")
         return ""

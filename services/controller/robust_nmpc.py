@@ -49,6 +49,18 @@ def _horizon_sigmas(sig: np.ndarray, loc: np.ndarray) -> dict:
             "horizon_loc_sigma_head_rad": tuple(float(x) for x in loc[:, 2])}
 
 
+def _estimate_sigmas(ctx: StepContext) -> tuple[float, float]:
+    """The estimate's 1-sigma across the route and in heading. An estimate outside the corridor by less
+    cannot tell a robot at the edge from one just inside: the law then steers it back (its plan pays the
+    slack price) instead of stopping where it is, which would leave it there."""
+    if ctx.pose_cov is None:
+        return 0.0, 0.0
+    cov = np.asarray(ctx.pose_cov, dtype=float)
+    th = float(ctx.path.tangent_at(ctx.s_m))
+    n = np.array([-math.sin(th), math.cos(th)])
+    return math.sqrt(max(float(n @ cov[:2, :2] @ n), 0.0)), math.sqrt(max(float(cov[2, 2]), 0.0))
+
+
 @dataclass(frozen=True)
 class MinMaxStep:
     """One MM-LB-NMPC step's problem and answer, for re-solving it elsewhere (bench: CasADi/IPOPT)."""
@@ -133,7 +145,7 @@ class RCLBNMPCLaw:
 
     def angular(self, ctx: StepContext) -> LawResult:
         s, dt, corridor = self.settings, self.dt, self._corridor_of(ctx)
-        why = corridor.contains(ctx.s_m, ctx.e_lat_m, ctx.e_head_rad)
+        why = corridor.contains(ctx.s_m, ctx.e_lat_m, ctx.e_head_rad, _estimate_sigmas(ctx))
         if why:
             return LawResult(0.0, v_mps=0.0, stop_reason=f"{why}: stopped")
         gp = self.model_for(dataclasses.replace(ctx, v_mps=self._window_speed(ctx)))
