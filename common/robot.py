@@ -62,6 +62,15 @@ class RobotParams:
         return math.inf
 
 
+    @property
+    def max_curvature_rate(self) -> float:
+        """How fast the steering can change the curvature, 1/(m s): d kappa / dt = d delta / dt / (L cos^2
+        delta) is at least the steering rate / L at any angle; 0 (no such limit) for a skid-steer robot."""
+        if self.drive == "ackermann":
+            return math.radians(self.steer_rate_max_dps) / self.wheelbase_m
+        return 0.0
+
+
 def steering_from_unicycle(v_mps: float, w_radps: float, wheelbase_m: float) -> float:
     """Thesis eq. 5.27: delta = atan(L w / v). Reversing flips the sign of the needed angle."""
     if abs(v_mps) < 1e-6:

@@ -42,6 +42,7 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         loc_timeout_s=ctl.loc_timeout_s, stop_decel_mps2=ctl.stop_decel_mps2,
         limits=LimitsConfig(v_max_mps=rp.v_max_mps, w_max_radps=rp.w_max_radps,
                             max_curvature_per_m=rp.max_curvature if rp.drive == "ackermann" else 0.0,
+                            curvature_rate_max_per_ms=rp.max_curvature_rate,
                             decel_max_mps2=rp.decel_max_mps2),
         fl=FLGains(ctl.fl_gamma1, ctl.fl_gamma2, ctl.curvature_feedforward),
         ilc=ctl.ilc,

@@ -131,8 +131,11 @@ def test_jacobian_with_a_learned_model_matches_finite_differences():
     pose = path.pose_at(5.3) + np.array([0.0, 0.05, 0.02])
     ctx = ctx_at(path, pose, prev_cmd=(0.5, 0.1), model_prev=pose - np.array([0.05, 0.0, 0.01]))
     ctx = dataclasses.replace(ctx, xi_now=(0.4, 0.05))
-    for model, tau in ((None, (0.0, 0.0)), (gp, (0.0, 0.0)), (None, (0.45, 0.4)), (gp, (0.45, 0.4))):
-        problem, _ = build_problem(ctx, NMPCSettings(r_dw=1.0, q_terminal=50.0, actuator_tau_s=tau), 0.1, model)
+    # the last two with an Ackermann steering-rate limit that the random commands run into
+    for model, tau, kr in ((None, (0.0, 0.0), 0.0), (gp, (0.0, 0.0), 0.0), (None, (0.45, 0.4), 0.0),
+                           (gp, (0.45, 0.4), 0.0), (None, (0.45, 0.15), 0.37), (gp, (0.45, 0.15), 0.37)):
+        problem, _ = build_problem(ctx, NMPCSettings(r_dw=1.0, q_terminal=50.0, actuator_tau_s=tau,
+                                                     curvature_rate_max_per_ms=kr), 0.1, model)
         w = 0.2 * rng.normal(size=10)
         _, J = problem.residual(w)
         h = 1e-6

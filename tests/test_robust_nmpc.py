@@ -112,8 +112,10 @@ def test_speed_sensitivities_match_finite_differences():
     gp = GaussianProcess(X, Y, [SEHyper(np.array([2.0, .2, .1, .3, .4, .3, .35, .3, .4]), 0.02, 0.001)] * 3)
     pose = path.pose_at(11.0) + np.array([0.0, 0.05, 0.02])
     ctx = dataclasses.replace(ctx_for(path, pose), xi_now=(0.6, 0.1))
-    for model, tau in ((None, (0.0, 0.0)), (gp, (0.0, 0.0)), (gp, (0.45, 0.4))):
-        p, _ = build_problem(ctx, NMPCSettings(actuator_tau_s=tau), DT, model)
+    # the last with an Ackermann steering-rate limit, which scales with the speed
+    for model, tau, kr in ((None, (0.0, 0.0), 0.0), (gp, (0.0, 0.0), 0.0), (gp, (0.45, 0.4), 0.0),
+                           (gp, (0.45, 0.15), 0.37)):
+        p, _ = build_problem(ctx, NMPCSettings(actuator_tau_s=tau, curvature_rate_max_per_ms=kr), DT, model)
         w = p.w_ref + 0.1 * rng.normal(size=p.K)
         v = p.v + 0.1 * rng.normal(size=p.K)
         _, _, Sv = p.rollout(w, with_jac=True, v=v, with_v_jac=True)

@@ -19,6 +19,7 @@ class LimitsConfig:
     v_max_mps: float
     w_max_radps: float
     max_curvature_per_m: float = 0.0   # 0 = no curvature limit (skid-steer); Ackermann: tan(steer_max)/L
+    curvature_rate_max_per_ms: float = 0.0   # Ackermann: steering rate / L, 1/(m s); 0 = none (skid-steer)
     decel_max_mps2: float = 0.0        # hardest braking of a safety stop, which steers along the route; 0: at once
 
 

@@ -122,6 +122,7 @@ class HorizonProblem:
         self.sqrt_dr = math.sqrt(settings.r_dw)
         self.sqrt_qt = math.sqrt(settings.q_terminal)
         self.lag: LagTerms | None = None
+        self._rate_lag = lag if lag is not None and lag.rate_limited else None   # the turn rate is nonlinear
         if lag is not None and lag.active:
             Lv, cv, Lw, cw = lag.matrices(self.K)
             self.lag = LagTerms(Lv, cv * start.xi0[0], Lw, cw * start.xi0[1])
@@ -161,8 +162,19 @@ class HorizonProblem:
         """The speeds the robot moves at over each period under commands (v, w)."""
         if self.lag is None:
             return v, w
+        vb = self.lag.Lv @ v + self.lag.cv
+        return vb, None if w is None else self._turn_rates(np.asarray(w, dtype=float), vb)[0]
+
+    def _turn_rates(self, w: np.ndarray, vb: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """The periods' average turn rates under commands w at average speeds vb, their derivatives by w
+        (None: the identity) and by the speed commands (None: none; the rate limit scales with speed)."""
         lag = self.lag
-        return lag.Lv @ v + lag.cv, None if w is None else lag.Lw @ w + lag.cw
+        if lag is None:
+            return w, None, None
+        if self._rate_lag is None:
+            return lag.Lw @ w + lag.cw, lag.Lw, None
+        wb, Lw, by_vb = self._rate_lag.turn_rates(w, vb, self.start.xi0[1])
+        return wb, Lw, by_vb @ lag.Lv
 
     # --- prediction ------------------------------------------------------------------------------
     def rollout(self, w: np.ndarray, with_jac: bool, v: np.ndarray | None = None, with_v_jac: bool = False,
@@ -179,11 +191,12 @@ class HorizonProblem:
                 return (X, S, out[2]) if with_v_jac else (X, S)
         A = np.empty((self.K, 9)) if a_out is None else a_out
         v_all = self.v if v is None else v
-        vb, wb = self.effective(v_all, np.asarray(w, dtype=float))
+        vb = self.effective(v_all)[0]
+        wb, Lw, Wv = self._turn_rates(np.asarray(w, dtype=float), vb)
         X, terms = self._mean(w, v_all, vb, wb, A, with_jac or with_v_jac)
         Sw = Sv = None
         if terms is not None:
-            Sw, Sv = self._sensitivities(terms, np.asarray(vb, dtype=float), with_jac, with_v_jac)
+            Sw, Sv = self._sensitivities(terms, np.asarray(vb, dtype=float), (Lw, Wv), with_jac, with_v_jac)
         out = (X, Sw, Sv)
         self._memo = [(key, with_jac, with_v_jac, out, A.copy())] + self._memo[:1]
         return out if with_v_jac else (X, Sw)
@@ -240,11 +253,14 @@ class HorizonProblem:
             xj, yj, thj = xn, yn, thn
         return X, (_StepTerms(cs, gg, prev, Dg_all) if jac else None)
 
-    def _sensitivities(self, t: _StepTerms, vb: np.ndarray, with_w: bool, with_v: bool):
+    def _sensitivities(self, t: _StepTerms, vb: np.ndarray, turn: tuple[np.ndarray | None, np.ndarray | None],
+                       with_w: bool, with_v: bool):
         """dX/dw and dX/dv (each (K+1, 3, K) or None). Per step x_{j+1} = F(x_j, x_{j-1}, u_j, u_{j-1}),
         so S_{j+1} = A_j S_j + C_j S_{j-1} + b_j e_j' + d_j e_{j-1}'; both computed side by side in one
-        array (columns: w's, then v's), one product per step."""
+        array (columns: w's, then v's), one product per step. `turn`: the average turn rates' derivatives
+        by w and v (`_turn_rates`)."""
         K, dt, lag = self.K, self.dt, self.lag
+        Lw, Wv = turn
         Aj, Cj, b, bv, d_w, d_v = self._step_jacobians(t, vb)
         n_w = K if with_w else 0
         SS = np.zeros((K + 1, 3, n_w + (K if with_v else 0)))
@@ -255,13 +271,15 @@ class HorizonProblem:
             if with_w:
                 Sn[:, j] += b[j]
                 if lag:
-                    Sn[2, :j + 1] += dt * lag.Lw[j, :j + 1]
+                    Sn[2, :j + 1] += dt * Lw[j, :j + 1]
                 if d_w is not None and j > 0:
                     Sn[:, j - 1] += d_w[j]
             if with_v:
                 Sn[:, n_w + j] += bv[j]
                 if lag:
                     Sn[:2, n_w:n_w + j + 1] += np.outer(dt * t.cs[j], lag.Lv[j, :j + 1])
+                if Wv is not None:
+                    Sn[2, n_w:n_w + j + 1] += dt * Wv[j, :j + 1]
                 if d_v is not None and j > 0:
                     Sn[:, n_w + j - 1] += d_v[j]
             SS[j + 1] = Sn

@@ -153,8 +153,9 @@ class DriveFit:
     w: ChannelFit | None
     notes: tuple[str, ...]
 
-    def lag(self, dt: float) -> ActuatorLag:
-        return ActuatorLag(self.v.model_tau_s if self.v else 0.0, self.w.model_tau_s if self.w else 0.0, dt)
+    def lag(self, dt: float, curvature_rate_max_per_ms: float = 0.0) -> ActuatorLag:
+        return ActuatorLag(self.v.model_tau_s if self.v else 0.0, self.w.model_tau_s if self.w else 0.0, dt,
+                           curvature_rate_max_per_ms)
 
 
 def identify_drive(u: np.ndarray, y: np.ndarray, dt: float) -> DriveFit:
@@ -228,11 +229,14 @@ def horizon_factors(G: np.ndarray, U: np.ndarray, prior: PriorStd, steps: int = 
     return out
 
 
-def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd()) -> NominalModel:
-    """The nominal model of the robot that drove this teach pass, as the controller will use it."""
+def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd(),
+             curvature_rate_max_per_ms: float = 0.0) -> NominalModel:
+    """The nominal model of the robot that drove this teach pass, as the controller will use it. An
+    Ackermann robot's steering-rate limit comes with it (the robot's limits, as its steering-angle limit
+    does): a teach pass driven smoothly never shows it, and it is what bounds a fast repeat's turns."""
     u, y = rec.arrays()
     drive = identify_drive(u, y, rec.dt)
-    lag = drive.lag(rec.dt)
+    lag = drive.lag(rec.dt, curvature_rate_max_per_ms)
     G, U = teach_residuals(rec, path, lag)
     notes = list(drive.notes)
     if len(G) >= MIN_SAMPLES:
@@ -251,6 +255,7 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         rate_limit_w_radps2=_finite(fit(drive.w, "rate_limit", math.inf)),
         fit_rmse_v_mps=fit(drive.v, "rmse", 0.0), fit_rmse_w_radps=fit(drive.w, "rmse", 0.0),
         samples_v=fit(drive.v, "samples", 0), samples_w=fit(drive.w, "samples", 0),
-        actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
+        actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), curvature_rate_max_per_ms=lag.curvature_rate_max_per_ms,
+        prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
         prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
         spread_factors=[float(f) for f in factors], residual_samples=len(G), notes=notes)

@@ -21,9 +21,10 @@ def save_model(directory: str | FsPath, model: NominalModel) -> FsPath:
 
 
 class NominalModels:
-    def __init__(self, robot: str, dt: float, directory: str | FsPath | None):
+    def __init__(self, robot: str, dt: float, directory: str | FsPath | None, curvature_rate_max_per_ms: float = 0.0):
         self.robot = robot
         self.dt = dt
+        self.curvature_rate_max_per_ms = curvature_rate_max_per_ms   # the robot's, for its Ackermann steering
         self.directory = FsPath(directory) if directory else None
         self.teach: TeachRecorder | None = None
         self._known: dict[str, NominalModel] = {}
@@ -48,7 +49,8 @@ class NominalModels:
         """Identify the model of the pass just recorded on `path`, keep it (and on disk) for the route."""
         if self.teach is None:
             raise ValueError("no teach pass was recorded")
-        model = identify(self.teach, path, self.robot, stamp_s)
+        model = identify(self.teach, path, self.robot, stamp_s,
+                         curvature_rate_max_per_ms=self.curvature_rate_max_per_ms)
         self.teach = None
         self._known[path.path_id] = model
         if self.directory is not None:
