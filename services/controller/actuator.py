@@ -21,12 +21,15 @@ An Ackermann robot turns by steering, and its steering angle moves at a limited 
 changes by at most R_kappa per second (steering rate / wheelbase, a bound that holds at any angle), its
 turn rate by v R_kappa, which at 2 m/s is a fraction of what the lag alone would allow. Unmodelled, an
 NMPC plans turn-rate swings the steering cannot follow and the loop cycles (docs/results.md, MATS). With
-the limit the turn-rate channel's step per period is softly saturated,
+the limit, the turn channel's state is the curvature the steering has reached, commanded by
+kappa_u = w / v (eq. 5.27's inverse, as the drive converts it), its step per period softly saturated:
 
-    xi_{k+1} = xi_k + sat((1 - beta)(u_k - xi_k)),    ubar_k = xi_k + rho sat(.),   rho = (1 - a) / (1 - beta)
+    xi_{k+1} = xi_k + sat((1 - beta)(kappa_u - xi_k)),   kappabar_k = xi_k + rho sat(.),   wbar_k = vbar_k kappabar_k
 
-sat(x) = x / (1 + (x / c)^6)^(1/6), c = R_kappa max(|vbar_k|, V_FLOOR) dt: the linear lag below about
-half the limit (within 0.3 %), the limit beyond it, and smooth, so the Jacobian the solvers use is too.
+with rho = (1 - a) / (1 - beta) and sat(x) = x / (1 + (x / c)^6)^(1/6), c = R_kappa dt: the linear lag
+below about half the limit (within 0.3 %), the limit beyond it, and smooth, so the Jacobians the solvers
+use are too. The turn rate follows the speed at a held steering angle, so a robot that slows down in a
+turn turns less without steering, which a turn-rate lag would not know.
 """
 from __future__ import annotations
 
@@ -37,7 +40,7 @@ from typing import Callable
 import numpy as np
 
 
-V_FLOOR_MPS = 0.1         # the turn-rate limit of a robot (nearly) at rest: it turns little there anyway
+V_FLOOR_MPS = 0.02        # a speed command below this steers as at it (kappa_u = w / v)
 SAT_POWER = 6
 RATE_HISTORY_S = 3.0      # a rate-limited drive is replayed this far back (a full swing takes seconds)
 
@@ -88,62 +91,65 @@ class ActuatorLag:
         span = max(10.0 * max(self.tau_v_s, self.tau_w_s), RATE_HISTORY_S if self.rate_limited else 0.0)
         return int(math.ceil(span / self.dt)) + 1
 
-    def w_step_limit(self, v_mps):
-        """c of the turn-rate channel's saturation in a period moved at speed v_mps (float or array; inf
-        without a limit)."""
-        if not self.rate_limited:
-            return np.full(np.shape(v_mps), math.inf)
-        return self.curvature_rate_max_per_ms * self.dt * np.maximum(np.abs(v_mps), V_FLOOR_MPS)
+    def settled(self, u: tuple[float, float]) -> tuple[float, float]:
+        """xi of a drive that has held command u for long: the speeds, or the speed and the curvature."""
+        return (u[0], self._curvature(u[0], u[1])) if self.rate_limited else u
+
+    @staticmethod
+    def _curvature(v: float, w: float) -> float:
+        return w / math.copysign(max(abs(v), V_FLOOR_MPS), v)
 
     def _both(self) -> tuple[tuple[float, float], tuple[float, float]]:
         return _coeffs(self.tau_v_s, self.dt), _coeffs(self.tau_w_s, self.dt)
 
     def step(self, xi: tuple[float, float], u: tuple[float, float]) -> tuple[tuple[float, float], tuple[float, float]]:
-        """One period under command u from achieved speeds xi: (the period's average speeds, the next xi)."""
+        """One period under command u from the drive's state xi: (the period's average speeds, the next xi)."""
         (bv, av), (bw, aw) = self._both()
         v_avg = av * xi[0] + (1 - av) * u[0]
         xi_v = bv * xi[0] + (1 - bv) * u[0]
         if not self.rate_limited:
             return (v_avg, aw * xi[1] + (1 - aw) * u[1]), (xi_v, bw * xi[1] + (1 - bw) * u[1])
-        d = float(soft_clip((1 - bw) * (u[1] - xi[1]), self.w_step_limit(v_avg))[0])
-        return (v_avg, xi[1] + (1 - aw) / (1 - bw) * d), (xi_v, xi[1] + d)
+        c = self.curvature_rate_max_per_ms * self.dt
+        d = float(soft_clip((1 - bw) * (self._curvature(*u) - xi[1]), c)[0])
+        return (v_avg, v_avg * (xi[1] + (1 - aw) / (1 - bw) * d)), (xi_v, xi[1] + d)
 
-    def turn_rates(self, w: np.ndarray, v_avg: np.ndarray, xi_w0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Over a horizon of commands w (K,) moved at average speeds v_avg (K,), from achieved turn rate
-        xi_w0: the periods' average turn rates (K,) and their derivatives by w and by v_avg (each (K, K),
-        lower triangular; the speeds set the limit). Without the limit these are `matrices`' L_w w + c_w
-        xi_w0, L_w and zeros."""
+    def turn_rates(self, w: np.ndarray, v: np.ndarray, v_avg: np.ndarray,
+                   kappa0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """A rate-limited drive over a horizon of commands (v, w) (K,) moved at average speeds v_avg (K,),
+        from the curvature kappa0 the steering has reached: the periods' average turn rates (K,) and
+        their derivatives by w and by v (each (K, K), lower triangular, v_avg held), and by v_avg
+        (diagonal, (K,))."""
         bw, aw = self._both()[1]
-        g, rho = 1.0 - bw, (1.0 - aw) / (1.0 - bw)
+        g, rho, c = 1.0 - bw, (1.0 - aw) / (1.0 - bw), self.curvature_rate_max_per_ms * self.dt
         K = len(w)
-        v_avg = np.asarray(v_avg, dtype=float)
-        c = self.w_step_limit(v_avg)
-        dc = np.where(np.abs(v_avg) > V_FLOOR_MPS, np.sign(v_avg), 0.0) * self.curvature_rate_max_per_ms * self.dt
-        wb, Lw, Lv = np.empty(K), np.zeros((K, K)), np.zeros((K, K))
-        dxi, dxi_v = np.zeros(K), np.zeros(K)          # d xi_j / d w, d xi_j / d v_avg
-        xi = float(xi_w0)
+        v, v_avg = np.asarray(v, dtype=float), np.asarray(v_avg, dtype=float)
+        v_eff = np.copysign(np.maximum(np.abs(v), V_FLOOR_MPS), v)
+        ku = np.asarray(w, dtype=float) / v_eff
+        dku_dv = np.where(np.abs(v) > V_FLOOR_MPS, -ku / v_eff, 0.0)
+        kb, Kw, Kv = np.empty(K), np.zeros((K, K)), np.zeros((K, K))
+        dxi_w, dxi_v = np.zeros(K), np.zeros(K)          # d xi_j / d w, d xi_j / d v
+        xi = float(kappa0)
         for j in range(K):
-            e, cj = g * (float(w[j]) - xi), float(c[j])
-            d, slope = soft_clip(e, cj)
-            dd, dd_v = (-slope * g) * dxi, (-slope * g) * dxi_v
-            dd[j] += slope * g
-            if math.isfinite(cj):                     # d sat / d c = x z / c (1 + z)^(-1/p - 1)
-                dd_v[j] += e * (e / cj) ** SAT_POWER / cj * slope * dc[j]
-            wb[j] = xi + rho * d
-            Lw[j], Lv[j] = dxi + rho * dd, dxi_v + rho * dd_v
+            d, slope = soft_clip(g * (ku[j] - xi), c)
+            sg = slope * g
+            dd_w, dd_v = -sg * dxi_w, -sg * dxi_v
+            dd_w[j] += sg / v_eff[j]
+            dd_v[j] += sg * dku_dv[j]
+            kb[j] = xi + rho * d
+            Kw[j], Kv[j] = dxi_w + rho * dd_w, dxi_v + rho * dd_v
             xi += d
-            dxi += dd
+            dxi_w += dd_w
             dxi_v += dd_v
-        return wb, Lw, Lv
+        return v_avg * kb, v_avg[:, None] * Kw, v_avg[:, None] * Kv, kb
 
     def state_before(self, tick: int, command_at: Callable[[int], tuple[float, float] | None]) -> tuple[float, float]:
-        """xi at the start of `tick`, from the commands applied before it (none known: standing still).
+        """xi (the speeds reached, or the speed and the curvature with a rate limit) at the start of `tick`, from the commands applied before it (none known: standing still).
         The lag forgets (to exp(-10)) within 10 tau, so only that many periods are replayed, from the drive
         settled at the oldest of them. A period without a recorded command (a skipped tick) held the one
         before it; before the first recorded command the robot stood still."""
         n = self.history_periods
         u = command_at(tick - n) or (0.0, 0.0)
-        xi = u
+        xi = self.settled(u)
         for t in range(tick - n, tick):
             u = command_at(t) or u
             xi = self.step(xi, u)[1]

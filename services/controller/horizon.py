@@ -6,7 +6,8 @@ Prediction model (eq. 5.14, 5.26), states in the route's frame:
 
 with g the GP posterior mean of the local window (body frame, as the experiences are built, see
 experience.py) and v_{j-1} recomputed from consecutive predicted poses as in 5.3.1. With a drive lag
-(actuator.py) the robot moves at ubar = L u + c xi0 per axis instead of at u.
+(actuator.py) the robot moves at ubar = L u + c xi0 per axis instead of at u; with an Ackermann
+steering's rate limit the turn rate is v times a rate-limited curvature (nonlinear, its Jacobians exact).
 
 Errors (eq. 5.16): x_j against the desired state x_{d,j} of the `HorizonReference`, along and lateral
 along the route's direction there, heading against the taught heading (the same definitions the
@@ -79,7 +80,7 @@ class HorizonStart:
     x0: np.ndarray                      # (3,) pose in the route frame, heading continuous with the reference
     v_prev_act: tuple[float, float]     # body velocities over the period before (thesis 5.3.1)
     u_prev: tuple[float, float]         # the command of the period before
-    xi0: tuple[float, float] = (0.0, 0.0)     # the speeds the drive has reached (actuator.py)
+    xi0: tuple[float, float] = (0.0, 0.0)     # the drive's state: speeds (or speed, curvature) reached (actuator.py)
     delay: tuple[DelayedPeriod, ...] = ()     # the periods the estimate was carried through
 
 
@@ -163,18 +164,19 @@ class HorizonProblem:
         if self.lag is None:
             return v, w
         vb = self.lag.Lv @ v + self.lag.cv
-        return vb, None if w is None else self._turn_rates(np.asarray(w, dtype=float), vb)[0]
+        return vb, None if w is None else self._turn_rates(np.asarray(w, dtype=float), v, vb)[0]
 
-    def _turn_rates(self, w: np.ndarray, vb: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """The periods' average turn rates under commands w at average speeds vb, their derivatives by w
-        (None: the identity) and by the speed commands (None: none; the rate limit scales with speed)."""
+    def _turn_rates(self, w: np.ndarray, v: np.ndarray, vb: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """The periods' average turn rates under commands (v, w) at average speeds vb, their derivatives
+        by w (None: the identity) and by v (None: none; an Ackermann robot turns at v times its curvature)."""
         lag = self.lag
         if lag is None:
             return w, None, None
         if self._rate_lag is None:
             return lag.Lw @ w + lag.cw, lag.Lw, None
-        wb, Lw, by_vb = self._rate_lag.turn_rates(w, vb, self.start.xi0[1])
-        return wb, Lw, by_vb @ lag.Lv
+        wb, Lw, by_v, by_vb = self._rate_lag.turn_rates(w, v, vb, self.start.xi0[1])
+        return wb, Lw, by_v + by_vb[:, None] * lag.Lv
 
     # --- prediction ------------------------------------------------------------------------------
     def rollout(self, w: np.ndarray, with_jac: bool, v: np.ndarray | None = None, with_v_jac: bool = False,
@@ -192,7 +194,7 @@ class HorizonProblem:
         A = np.empty((self.K, 9)) if a_out is None else a_out
         v_all = self.v if v is None else v
         vb = self.effective(v_all)[0]
-        wb, Lw, Wv = self._turn_rates(np.asarray(w, dtype=float), vb)
+        wb, Lw, Wv = self._turn_rates(np.asarray(w, dtype=float), v_all, vb)
         X, terms = self._mean(w, v_all, vb, wb, A, with_jac or with_v_jac)
         Sw = Sv = None
         if terms is not None:

@@ -164,7 +164,7 @@ class PathTracker:
         law_lat, law_head = self._smoothed(vertex, lat, head)
         v = self.speed_at(dist)
         delayed, before = (), None
-        xi_now = xi_capture = self._last_cmd        # without a command history: the drive has settled
+        xi_now = xi_capture = self.lag.settled(self._last_cmd)   # without a command history: settled
         if tick is not None and command_at is not None:
             if tick > last.capture_tick:
                 cmds = [command_at(t) for t in range(last.capture_tick, tick)]
