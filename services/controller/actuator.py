@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Callable
 
 import numpy as np
@@ -49,6 +50,11 @@ def soft_clip(x, c):
     """sat(x) and its derivative: x below c, c beyond it, smooth in between (arrays or floats)."""
     z = (x / c) ** SAT_POWER
     return x * (1.0 + z) ** (-1.0 / SAT_POWER), (1.0 + z) ** (-1.0 / SAT_POWER - 1.0)
+
+
+@lru_cache(maxsize=8)
+def _strictly_lower(K: int) -> np.ndarray:
+    return np.tri(K, K, -1, dtype=bool)
 
 
 def _coeffs(tau: float, dt: float) -> tuple[float, float]:
@@ -126,21 +132,20 @@ class ActuatorLag:
         v_eff = np.copysign(np.maximum(np.abs(v), V_FLOOR_MPS), v)
         ku = np.asarray(w, dtype=float) / v_eff
         dku_dv = np.where(np.abs(v) > V_FLOOR_MPS, -ku / v_eff, 0.0)
-        kb, Kw, Kv = np.empty(K), np.zeros((K, K)), np.zeros((K, K))
-        dxi_w, dxi_v = np.zeros(K), np.zeros(K)          # d xi_j / d w, d xi_j / d v
-        xi = float(kappa0)
-        for j in range(K):
-            d, slope = soft_clip(g * (ku[j] - xi), c)
-            sg = slope * g
-            dd_w, dd_v = -sg * dxi_w, -sg * dxi_v
-            dd_w[j] += sg / v_eff[j]
-            dd_v[j] += sg * dku_dv[j]
-            kb[j] = xi + rho * d
-            Kw[j], Kv[j] = dxi_w + rho * dd_w, dxi_v + rho * dd_v
+        # the recursion in scalars; then d xi_j / d ku_i = s_i prod_{i<l<j} (1 - s_l), s = sat' g
+        xi, kb, sg = float(kappa0), np.empty(K), np.empty(K)
+        for j, kj in enumerate(ku.tolist()):
+            d, slope = soft_clip(g * (kj - xi), c)
+            kb[j], sg[j] = xi + rho * d, slope * g
             xi += d
-            dxi_w += dd_w
-            dxi_v += dd_v
-        return v_avg * kb, v_avg[:, None] * Kw, v_avg[:, None] * Kv, kb
+        log_m = np.cumsum(np.log(np.maximum(1.0 - sg, 1e-300)))
+        log_m = np.concatenate([[0.0], log_m[:-1]])      # sum over l < j
+        below = _strictly_lower(K)
+        # d xi_j / d ku_i, then d kappabar_j / d ku_i (times the speed: the turn rate's)
+        D = np.exp(np.where(below, log_m[:, None] - log_m[None, :], -np.inf)) * (sg / (1.0 - sg + 1e-300))[None, :]
+        D *= ((1.0 - rho * sg) * v_avg)[:, None]
+        D.flat[::K + 1] = rho * sg * v_avg
+        return v_avg * kb, D / v_eff[None, :], D * dku_dv[None, :], kb
 
     def state_before(self, tick: int, command_at: Callable[[int], tuple[float, float] | None]) -> tuple[float, float]:
         """xi (the speeds reached, or the speed and the curvature with a rate limit) at the start of `tick`, from the commands applied before it (none known: standing still).
