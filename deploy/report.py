@@ -309,7 +309,6 @@ def _model_section(model: dict) -> list[str]:
             "lags the NMPC uses (v, w), s": model["actuator_tau_s"],
             "steering-rate limit the NMPC uses, curvature per s (1/(m s); 0: none)":
                 model.get("curvature_rate_max_per_ms", 0.0),
-            "steering lock the NMPC uses, curvature (1/m; 0: none)": model.get("curvature_max_per_m", 0.0),
             "a-priori std per period, base (m, m, rad)": model["prior_std_base"],
             "... per m/s": model["prior_std_per_mps"], "... per rad/s": model["prior_std_per_radps"],
             "scale of the default prior, from the teach residuals": model["prior_scale"]}

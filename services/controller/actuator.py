@@ -22,8 +22,7 @@ changes by at most R_kappa per second (steering rate / wheelbase, a bound that h
 turn rate by v R_kappa, which at 2 m/s is a fraction of what the lag alone would allow. Unmodelled, an
 NMPC plans turn-rate swings the steering cannot follow and the loop cycles (docs/results.md, MATS). With
 the limit, the turn channel's state is the curvature the steering has reached, commanded by
-kappa_u = w / v (eq. 5.27's inverse, as the drive converts it; softly held within the steering's lock),
-its step per period softly saturated:
+kappa_u = w / v (eq. 5.27's inverse, as the drive converts it), its step per period softly saturated:
 
     xi_{k+1} = xi_k + sat((1 - beta)(kappa_u - xi_k)),   kappabar_k = xi_k + rho sat(.),   wbar_k = vbar_k kappabar_k
 
@@ -44,14 +43,13 @@ import numpy as np
 
 V_FLOOR_MPS = 0.02        # a speed command below this steers as at it (kappa_u = w / v)
 SAT_POWER = 6
-LOCK_POWER = 12           # the steering-angle limit: sharper (0.5 % short of the command at 80 % of lock)
 RATE_HISTORY_S = 3.0      # a rate-limited drive is replayed this far back (a full swing takes seconds)
 
 
-def soft_clip(x, c, p: int = SAT_POWER):
+def soft_clip(x, c):
     """sat(x) and its derivative: x below c, c beyond it, smooth in between (arrays or floats)."""
-    z = (x / c) ** p
-    return x * (1.0 + z) ** (-1.0 / p), (1.0 + z) ** (-1.0 / p - 1.0)
+    z = (x / c) ** SAT_POWER
+    return x * (1.0 + z) ** (-1.0 / SAT_POWER), (1.0 + z) ** (-1.0 / SAT_POWER - 1.0)
 
 
 @lru_cache(maxsize=8)
@@ -72,11 +70,10 @@ class ActuatorLag:
     tau_w_s: float = 0.0
     dt: float = 0.1
     curvature_rate_max_per_ms: float = 0.0     # Ackermann: R_kappa, 1/(m s); 0: the turn rate is not limited
-    curvature_max_per_m: float = 0.0           # Ackermann: the steering's lock, tan(delta_max) / L; 0: none
 
     def __post_init__(self):
-        if min(self.tau_v_s, self.tau_w_s, self.curvature_rate_max_per_ms, self.curvature_max_per_m) < 0 or self.dt <= 0:
-            raise ValueError("actuator time constants and curvature limits must be >= 0, the period > 0")
+        if self.tau_v_s < 0 or self.tau_w_s < 0 or self.dt <= 0 or self.curvature_rate_max_per_ms < 0:
+            raise ValueError("actuator time constants and the curvature rate limit must be >= 0, the period > 0")
 
     @property
     def model_tag(self) -> str:
@@ -84,8 +81,7 @@ class ActuatorLag:
         a name: the store keeps each model's experiences apart (common/messages.py Experience.model)."""
         ms = lambda x: int(round(1000 * x))     # noqa: E731
         tag = f"unicycle-dt{ms(self.dt)}ms-tauv{ms(self.tau_v_s)}ms-tauw{ms(self.tau_w_s)}ms"
-        tag += f"-kr{ms(self.curvature_rate_max_per_ms)}m" if self.rate_limited else ""
-        return tag + (f"-km{ms(self.curvature_max_per_m)}m" if self.rate_limited and self.curvature_max_per_m > 0 else "")
+        return tag + (f"-kr{ms(self.curvature_rate_max_per_ms)}m" if self.rate_limited else "")
 
     @property
     def rate_limited(self) -> bool:
@@ -105,10 +101,9 @@ class ActuatorLag:
         """xi of a drive that has held command u for long: the speeds, or the speed and the curvature."""
         return (u[0], self._curvature(u[0], u[1])) if self.rate_limited else u
 
-    def _curvature(self, v: float, w: float) -> float:
-        """The curvature command (w, v) asks the steering for, within its lock."""
-        kappa = w / math.copysign(max(abs(v), V_FLOOR_MPS), v)
-        return float(soft_clip(kappa, self.curvature_max_per_m, LOCK_POWER)[0]) if self.curvature_max_per_m > 0 else kappa
+    @staticmethod
+    def _curvature(v: float, w: float) -> float:
+        return w / math.copysign(max(abs(v), V_FLOOR_MPS), v)
 
     def _both(self) -> tuple[tuple[float, float], tuple[float, float]]:
         return _coeffs(self.tau_v_s, self.dt), _coeffs(self.tau_w_s, self.dt)
@@ -137,10 +132,6 @@ class ActuatorLag:
         v_eff = np.copysign(np.maximum(np.abs(v), V_FLOOR_MPS), v)
         ku = np.asarray(w, dtype=float) / v_eff
         dku_dv = np.where(np.abs(v) > V_FLOOR_MPS, -ku / v_eff, 0.0)
-        dku_dw = 1.0 / v_eff
-        if self.curvature_max_per_m > 0:          # the steering's lock
-            ku, lock = soft_clip(ku, self.curvature_max_per_m, LOCK_POWER)
-            dku_dv, dku_dw = lock * dku_dv, lock * dku_dw
         # the recursion in scalars; then d xi_j / d ku_i = s_i prod_{i<l<j} (1 - s_l), s = sat' g
         xi, kb, sg = float(kappa0), np.empty(K), np.empty(K)
         for j, kj in enumerate(ku.tolist()):
@@ -154,7 +145,7 @@ class ActuatorLag:
         D = np.exp(np.where(below, log_m[:, None] - log_m[None, :], -np.inf)) * (sg / (1.0 - sg + 1e-300))[None, :]
         D *= ((1.0 - rho * sg) * v_avg)[:, None]
         D.flat[::K + 1] = rho * sg * v_avg
-        return v_avg * kb, D * dku_dw[None, :], D * dku_dv[None, :], kb
+        return v_avg * kb, D / v_eff[None, :], D * dku_dv[None, :], kb
 
     def state_before(self, tick: int, command_at: Callable[[int], tuple[float, float] | None]) -> tuple[float, float]:
         """xi (the speeds reached, or the speed and the curvature with a rate limit) at the start of `tick`, from the commands applied before it (none known: standing still).

@@ -153,9 +153,9 @@ class DriveFit:
     w: ChannelFit | None
     notes: tuple[str, ...]
 
-    def lag(self, dt: float, curvature_rate_max_per_ms: float = 0.0, curvature_max_per_m: float = 0.0) -> ActuatorLag:
+    def lag(self, dt: float, curvature_rate_max_per_ms: float = 0.0) -> ActuatorLag:
         return ActuatorLag(self.v.model_tau_s if self.v else 0.0, self.w.model_tau_s if self.w else 0.0, dt,
-                           curvature_rate_max_per_ms, curvature_max_per_m)
+                           curvature_rate_max_per_ms)
 
 
 def identify_drive(u: np.ndarray, y: np.ndarray, dt: float) -> DriveFit:
@@ -230,12 +230,13 @@ def horizon_factors(G: np.ndarray, U: np.ndarray, prior: PriorStd, steps: int = 
 
 
 def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd(),
-             curvature_rate_max_per_ms: float = 0.0, curvature_max_per_m: float = 0.0) -> NominalModel:
+             curvature_rate_max_per_ms: float = 0.0) -> NominalModel:
     """The nominal model of the robot that drove this teach pass, as the controller will use it. An
-    Ackermann robot's steering rate and lock come with it (the robot's limits): a teach pass driven smoothly never shows it, and it is what bounds a fast repeat's turns."""
+    Ackermann robot's steering-rate limit comes with it (the robot's limits, as its steering-angle limit
+    does): a teach pass driven smoothly never shows it, and it is what bounds a fast repeat's turns."""
     u, y = rec.arrays()
     drive = identify_drive(u, y, rec.dt)
-    lag = drive.lag(rec.dt, curvature_rate_max_per_ms, curvature_max_per_m if curvature_rate_max_per_ms > 0 else 0.0)
+    lag = drive.lag(rec.dt, curvature_rate_max_per_ms)
     G, U = teach_residuals(rec, path, lag)
     notes = list(drive.notes)
     if len(G) >= MIN_SAMPLES:
@@ -255,7 +256,6 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         fit_rmse_v_mps=fit(drive.v, "rmse", 0.0), fit_rmse_w_radps=fit(drive.w, "rmse", 0.0),
         samples_v=fit(drive.v, "samples", 0), samples_w=fit(drive.w, "samples", 0),
         actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), curvature_rate_max_per_ms=lag.curvature_rate_max_per_ms,
-        curvature_max_per_m=lag.curvature_max_per_m,
         prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
         prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
         spread_factors=[float(f) for f in factors], residual_samples=len(G), notes=notes)

@@ -71,7 +71,7 @@ class ControllerService(Service):
         self.gains = cfg.fl
         # the nominal model per route, identified on its teach pass (nominal_models.py)
         self.nominal = NominalModels(r, cfg.period_s, FsPath(cfg.data_dir) / "models" if cfg.data_dir else None,
-                                     lim.curvature_rate_max_per_ms, lim.max_curvature_per_m)
+                                     lim.curvature_rate_max_per_ms)
         self.calibrations: dict[tuple[str, str], SpreadCalibration] = {}   # (route, model) -> the last trial's
         node.subscribe_queue(keys.bridge_status(r), BridgeStatus, self.inbox)
         node.subscribe_queue(keys.odom(r), Odometry, self.inbox)

@@ -21,12 +21,10 @@ def save_model(directory: str | FsPath, model: NominalModel) -> FsPath:
 
 
 class NominalModels:
-    def __init__(self, robot: str, dt: float, directory: str | FsPath | None, curvature_rate_max_per_ms: float = 0.0,
-                 curvature_max_per_m: float = 0.0):
+    def __init__(self, robot: str, dt: float, directory: str | FsPath | None, curvature_rate_max_per_ms: float = 0.0):
         self.robot = robot
         self.dt = dt
         self.curvature_rate_max_per_ms = curvature_rate_max_per_ms   # the robot's, for its Ackermann steering
-        self.curvature_max_per_m = curvature_max_per_m
         self.directory = FsPath(directory) if directory else None
         self.teach: TeachRecorder | None = None
         self._known: dict[str, NominalModel] = {}
@@ -52,8 +50,7 @@ class NominalModels:
         if self.teach is None:
             raise ValueError("no teach pass was recorded")
         model = identify(self.teach, path, self.robot, stamp_s,
-                         curvature_rate_max_per_ms=self.curvature_rate_max_per_ms,
-                         curvature_max_per_m=self.curvature_max_per_m)
+                         curvature_rate_max_per_ms=self.curvature_rate_max_per_ms)
         self.teach = None
         self._known[path.path_id] = model
         if self.directory is not None:

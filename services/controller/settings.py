@@ -10,7 +10,7 @@ from services.controller.uncertainty import PriorStd
 _PRIOR = PriorStd()
 # the settings a teach pass identifies unless they are set by hand (NominalModel has the same names)
 PRIOR = ("prior_std_base", "prior_std_per_mps", "prior_std_per_radps")
-IDENTIFIED = ("actuator_tau_s", "curvature_rate_max_per_ms", "curvature_max_per_m") + PRIOR
+IDENTIFIED = ("actuator_tau_s", "curvature_rate_max_per_ms") + PRIOR
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -53,7 +53,6 @@ class NMPCSettings:
     # Ackermann: the steering's rate limit as curvature per second, 1/(m s) (actuator.py); 0: no limit.
     # None: the robot's, as the teach pass's model carries it (identification.py), or none without one
     curvature_rate_max_per_ms: float | None = None
-    curvature_max_per_m: float | None = None     # ... and its lock, tan(steer_max) / L, 1/m
     # with a learned model, weigh the heading error against the crab angle the model needs to hold the
     # route at the planned speed (nmpc.crab_offsets), not the taught heading, which holds the teach
     # speed's crab: for repeats well above the teach speed on ground that slides the robot sideways
@@ -72,8 +71,8 @@ class NMPCSettings:
             if len(tau) != 2 or min(tau) < 0:
                 raise ValueError("actuator_tau_s: two non-negative time constants (v, w) in seconds")
             object.__setattr__(self, "actuator_tau_s", tau)
-        if min(self.curvature_rate_max_per_ms or 0.0, self.curvature_max_per_m or 0.0) < 0:
-            raise ValueError("curvature_rate_max_per_ms and curvature_max_per_m must be >= 0 (0: no limit)")
+        if self.curvature_rate_max_per_ms is not None and self.curvature_rate_max_per_ms < 0:
+            raise ValueError("curvature_rate_max_per_ms must be >= 0 (0: no limit)")
         if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
                 self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw, self.q_terminal, self.lookahead_m) < 0:
             raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
@@ -84,7 +83,7 @@ class NMPCSettings:
 
     def lag(self, dt: float) -> ActuatorLag:
         tau = self.actuator_tau_s or (0.0, 0.0)
-        return ActuatorLag(tau[0], tau[1], dt, self.curvature_rate_max_per_ms or 0.0, self.curvature_max_per_m or 0.0)
+        return ActuatorLag(tau[0], tau[1], dt, self.curvature_rate_max_per_ms or 0.0)
 
     @property
     def prior_is_identified(self) -> bool:
