@@ -243,8 +243,8 @@ class NominalModel(Message):
         check_name("path_id", self.path_id)
         check_name("model_tag", self.model_tag)
         if self.dt_s <= 0 or min(self.tau_v_s, self.tau_w_s, self.dead_time_v_s, self.dead_time_w_s,
-                                 *self.actuator_tau_s, self.curvature_rate_max_per_ms, *self.prior_std_base, *self.prior_std_per_mps,
-                                 *self.prior_std_per_radps) < 0:
+                                 *self.actuator_tau_s, self.curvature_rate_max_per_ms, *self.prior_std_base,
+                                 *self.prior_std_per_mps, *self.prior_std_per_radps) < 0:
             raise ValueError("dt_s > 0 and non-negative time constants, dead times and prior std required")
 
 

@@ -61,7 +61,6 @@ class RobotParams:
             return math.tan(math.radians(self.steer_max_deg)) / self.wheelbase_m
         return math.inf
 
-
     @property
     def max_curvature_rate(self) -> float:
         """How fast the steering can change the curvature, 1/(m s): d kappa / dt = d delta / dt / (L cos^2

@@ -122,9 +122,9 @@ class ActuatorLag:
     def turn_rates(self, w: np.ndarray, v: np.ndarray, v_avg: np.ndarray,
                    kappa0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """A rate-limited drive over a horizon of commands (v, w) (K,) moved at average speeds v_avg (K,),
-        from the curvature kappa0 the steering has reached: the periods' average turn rates (K,) and
-        their derivatives by w and by v (each (K, K), lower triangular, v_avg held), and by v_avg
-        (diagonal, (K,))."""
+        from the curvature kappa0 the steering has reached: the periods' average turn rates (K,), their
+        derivatives by w and by v (each (K, K), lower triangular, v_avg held) and the periods' average
+        curvatures (K,), the derivative by v_avg (the turn rate is v_avg times them)."""
         bw, aw = self._both()[1]
         g, rho, c = 1.0 - bw, (1.0 - aw) / (1.0 - bw), self.curvature_rate_max_per_ms * self.dt
         K = len(w)
@@ -148,8 +148,8 @@ class ActuatorLag:
         return v_avg * kb, D / v_eff[None, :], D * dku_dv[None, :], kb
 
     def state_before(self, tick: int, command_at: Callable[[int], tuple[float, float] | None]) -> tuple[float, float]:
-        """xi (the speeds reached, or the speed and the curvature with a rate limit) at the start of `tick`, from the commands applied before it (none known: standing still).
-        The lag forgets (to exp(-10)) within 10 tau, so only that many periods are replayed, from the drive
+        """xi (the speeds reached, or the speed and the curvature with a rate limit) at the start of
+        `tick`, from the commands applied before it (none known: standing still). The lag forgets (to exp(-10)) within 10 tau, so only that many periods are replayed, from the drive
         settled at the oldest of them. A period without a recorded command (a skipped tick) held the one
         before it; before the first recorded command the robot stood still."""
         n = self.history_periods

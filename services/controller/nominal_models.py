@@ -21,7 +21,8 @@ def save_model(directory: str | FsPath, model: NominalModel) -> FsPath:
 
 
 class NominalModels:
-    def __init__(self, robot: str, dt: float, directory: str | FsPath | None, curvature_rate_max_per_ms: float = 0.0):
+    def __init__(self, robot: str, dt: float, directory: str | FsPath | None,
+                 curvature_rate_max_per_ms: float = 0.0):
         self.robot = robot
         self.dt = dt
         self.curvature_rate_max_per_ms = curvature_rate_max_per_ms   # the robot's, for its Ackermann steering
