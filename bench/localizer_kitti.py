@@ -8,8 +8,10 @@ pixels); everything after it is timed: stereo keypoint extraction plus registrat
 
 Two passes, on one CPU (process pinned, OpenCV and BLAS limited to one thread):
 - teach: every frame through `VisualTeach.add` (registration against the current keyframe with a
-  constant-velocity prior; with KITTI's spacing every frame becomes a keyframe). Its keyframe chain is
-  stereo VO: `vo_drift_pct` / `vo_drift_deg_per_m` compare its final pose with the ground truth.
+  constant-velocity prior; with KITTI's spacing every frame becomes a keyframe; the last keyframes
+  bundle-adjusted together with the rig's disparity offset). Its keyframe chain is stereo VO:
+  `vo_drift_pct` / `vo_drift_deg_per_m` compare its final pose with the ground truth;
+  `disparity_offset_px` is the offset the pass estimated (disparities measured that much short).
 - repeat: a map taught on the even frames, then every odd frame through `VisualRepeat.localize` (VO
   against the previous frame + refinement against the nearest keyframe: two registrations per frame).
   `reloc_within_tol` is the fraction of odd frames localized ("ok") within 0.15 m and 0.5 degrees of
@@ -101,8 +103,9 @@ def bench_kitti(repeats: int = 1, settings: VisionSettings | None = None, data: 
             E = inv_T(seq.poses[n - 1]) @ vo_map.keyframes[-1].T_first_this
             drift_pct = 100.0 * float(np.linalg.norm(E[:3, 3])) / dist
             drift_deg_m = rotation_angle_deg(E) / dist
+            offset_px = float(vo_map.meta.get("disparity_offset_px", 0.0))
             _, vmap = _teach(seq, images, range(0, n, 2), settings)
-            fe, rep = StereoFrontend(seq.camera, settings), VisualRepeat(vmap, settings)
+            fe, rep = StereoFrontend(vmap.camera, settings), VisualRepeat(vmap, settings)
             rep.start(0)
             for i in range(1, n, 2):
                 t0 = time.perf_counter()
@@ -124,6 +127,7 @@ def bench_kitti(repeats: int = 1, settings: VisionSettings | None = None, data: 
             "teach_latency_ms_p99": round(float(np.percentile(tt, 99)), 2),
             "vo_drift_pct": round(drift_pct, 3), "vo_drift_deg_per_m": round(drift_deg_m, 5),
             "reloc_within_tol": round(float(np.mean(within)), 3),
+            "disparity_offset_px": round(offset_px, 3),
             "repeat_status": {s: statuses.count(s) for s in sorted(set(statuses))},
             "frames": n, "distance_m": round(dist, 1), "repeats": repeats, "pinned": pinned,
             "data": folder.name, "data_dir": str(folder)}

@@ -57,8 +57,9 @@ def scale_bias(near_m: float, far_m: float, draws: int = 60, seed: int = 0) -> t
 
 # 40-80 m measured -0.68 % +- 0.08 % (200 draws): beyond issue 21's 0.5 % target, and of the opposite
 # sign to the +6 % seen on a long-range KITTI excerpt, so Gaussian pixel noise does not explain that one
-FAR_GAP = pytest.mark.xfail(strict=True, reason="issue 21: frame-to-frame PnP under-estimates motion by "
-                                                "~0.7 % at 40-80 m (no bundle adjustment yet)")
+FAR_GAP = pytest.mark.xfail(strict=True, reason="one registration under-estimates motion by ~0.7 % at "
+                                                "40-80 m; the teach chain's window bundle adjustment "
+                                                "removes it (test_window_ba.py)")
 
 
 @pytest.mark.parametrize("near_m, far_m", [(5.0, 20.0), (20.0, 40.0), pytest.param(40.0, 80.0, marks=FAR_GAP)])

@@ -51,6 +51,11 @@ class VisionSettings:
     # --- teach: map building
     keyframe_dist_m: float = DEFAULT_SPACING_M
     keyframe_angle_deg: float = 5.0
+    ba_window: int = 5                # keyframes adjusted together (window_ba.py); < 2: no adjustment
+    ba_iters: int = 3                 # Levenberg-Marquardt iterations per new keyframe
+    ba_max_landmarks: int = 200       # landmarks per window, longest tracks first (0: all)
+    estimate_disparity_offset: bool = True   # self-calibrate the rig's constant disparity error
+    disparity_offset_prior_px: float = 1.0   # std of its prior (mean 0) in each window
     # --- repeat
     search_radius: int = 5            # keyframes either side of the hint tried at start / after loss
     nearest_window: int = 3           # keyframes either side of the current one eligible as nearest

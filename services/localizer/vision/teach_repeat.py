@@ -11,7 +11,7 @@ Covariances are 6x6 over the left perturbation (translation, rotation) of the re
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -21,8 +21,12 @@ from common.se3 import adjoint, rotation_angle_deg
 from common.se3 import inverse as inv_T
 from services.localizer.vision.pose import PoseEstimate, estimate_pose
 from services.localizer.vision.settings import VisionSettings
+from services.localizer.vision.window_ba import KeyframeWindow
 
 log = logging.getLogger("localizer.vision")
+
+MIN_DISPARITY_PX = 0.25     # a keypoint's corrected disparity below this is at or beyond infinity
+MAX_OFFSET_PX = 3.0         # a window's disparity offset beyond this is a failed adjustment, not the rig
 
 
 @dataclass
@@ -108,28 +112,80 @@ class VisualTeach:
         self._last_is_kf = True
         self._T_vel: np.ndarray | None = None
         self.frames = self.failures = 0
+        self._window = KeyframeWindow(camera, settings.ba_window, settings.huber_k, settings.ba_iters,
+                                      settings.ba_max_landmarks) \
+            if settings.ba_window >= 2 else None
+        # the disparity offset's estimate: information (1/px^2) and information-weighted mean, from the
+        # prior (mean 0) and what each window's data add
+        self._offset_info = settings.disparity_offset_prior_px ** -2
+        self._offset_info_mean = 0.0
+        self.offset_windows = 0
 
-    def _make_keyframe(self, kp: StereoKeypoints, T_prev_this: np.ndarray) -> None:
+    @property
+    def disparity_offset_px(self) -> float:
+        """The rig's disparity offset as the teach pass has estimated it so far."""
+        return self._offset_info_mean / self._offset_info
+
+    @property
+    def disparity_offset_std_px(self) -> float:
+        return self._offset_info ** -0.5
+
+    def _calibrated(self) -> StereoCamera:
+        return replace(self.camera, doffs_px=self.camera.doffs_px + self.disparity_offset_px)
+
+    def _make_keyframe(self, kp: StereoKeypoints, T_prev_this: np.ndarray, pairs: np.ndarray | None) -> None:
+        """`pairs`: the new keyframe's inlier matches (its index, the previous keyframe's), None when it
+        was registered another way; the window's bundle adjustment then refines the last chain edges."""
         self.keyframes.append(Keyframe(len(self.keyframes), kp.points.copy(), kp.desc.copy(), kp.uvd.copy(),
                                        T_prev_this.copy(), None, kp.cov_uvd.copy()))
+        if self._window is None:
+            return
+        s = self.s
+        self._window.push(kp, T_prev_this, pairs)
+        prior = (self.disparity_offset_px, self.disparity_offset_std_px) if s.estimate_disparity_offset else None
+        out = self._window.adjust(*(prior or (self.disparity_offset_px, None)))
+        if out is None:
+            return
+        for kf, edge in zip(self.keyframes[len(self.keyframes) - len(out.edges):], out.edges):
+            kf.T_prev_this = edge
+        if prior is not None and out.offset_std_px is not None:
+            self._learn_offset(prior, out.offset_px, out.offset_std_px, len(out.edges) + 1)
+
+    def _learn_offset(self, prior: tuple[float, float], offset: float, std: float, frames: int) -> None:
+        """Fold a window's estimate into the running one: what its data alone say (its posterior less
+        the prior it was given), counted 1 / frames times, since every keyframe's observations come
+        back in the next windows that hold it."""
+        info = std ** -2 - prior[1] ** -2
+        if not np.isfinite(info) or info <= 0.0:
+            return
+        mean = (offset * std ** -2 - prior[0] * prior[1] ** -2) / info
+        if abs(mean) > MAX_OFFSET_PX:
+            log.debug("window disparity offset %.2f px ignored (beyond %.1f px)", mean, MAX_OFFSET_PX)
+            return
+        self._offset_info += info / frames
+        self._offset_info_mean += info * mean / frames
+        self.offset_windows += 1
 
     def add(self, kp: StereoKeypoints) -> TeachStep:
         self.frames += 1
         s = self.s
+        cam = self._calibrated()
+        kp = retriangulated(kp, cam)
         if not self.keyframes:
             if len(kp) < s.min_inliers:
                 self.failures += 1
                 return TeachStep(False, False, -1, np.eye(4), np.full((6, 6), np.inf), 0,
                                  f"too few keypoints for the first keyframe: {len(kp)} (need {s.min_inliers})")
-            self._make_keyframe(kp, np.eye(4))
+            self._make_keyframe(kp, np.eye(4), None)
             self._last = kp
             return TeachStep(True, True, 0, np.eye(4), np.zeros((6, 6)), len(kp))
         kf = self.keyframes[-1]
         pred = None if self._T_vel is None else self._T_vel @ self._T_last_kf
-        est = estimate_pose(kf.points, kf.desc, kp, self.camera, s, pred, kf.cov_uvd)
+        est = estimate_pose(kf.points, kf.desc, kp, cam, s, pred, kf.cov_uvd)
         T_live_kf, cov, reason = est.T_live_ref, est.cov, est.reason
+        pairs = est.pairs if est.ok else None
         if not est.ok and self._last is not None and not self._last_is_kf:
-            vo = estimate_pose(self._last.points, self._last.desc, kp, self.camera, s, self._T_vel,
+            vo = estimate_pose(self._last.points, self._last.desc, kp, cam, s, self._T_vel,
                                self._last.cov_uvd)
             if vo.ok:
                 A = adjoint(vo.T_live_ref)
@@ -147,7 +203,7 @@ class VisualTeach:
         T_kf_live = inv_T(T_live_kf)
         dist, ang = _motion(T_kf_live)
         if dist > s.keyframe_dist_m or ang > s.keyframe_angle_deg:
-            self._make_keyframe(kp, T_kf_live)
+            self._make_keyframe(kp, T_kf_live, pairs)
             self._T_last_kf, self._cov_last, self._last_is_kf = np.eye(4), np.zeros((6, 6)), True
             return TeachStep(True, True, len(self.keyframes) - 1, np.eye(4), np.zeros((6, 6)), est.inliers)
         # cov is of T_live_kf's perturbation in the live frame; report it for T_kf_live (keyframe frame)
@@ -155,10 +211,27 @@ class VisualTeach:
         return TeachStep(True, False, kf.index, T_kf_live, A @ cov @ A.T, est.inliers)
 
     def finish(self, meta: dict | None = None) -> VisionMap:
+        """The map, its keyframes' points triangulated with the disparity offset estimated over the
+        whole pass (the map's camera carries it in doffs_px, so the repeat pass measures with it)."""
+        cam = self._calibrated()
+        for kf in self.keyframes:
+            keep = kf.uvd[:, 2] + cam.doffs_px > MIN_DISPARITY_PX
+            kf.points, kf.desc, kf.uvd = cam.triangulate(kf.uvd[keep]), kf.desc[keep], kf.uvd[keep]
+            kf.cov_uvd = None if kf.cov_uvd is None else kf.cov_uvd[keep]
         info = {"frames": self.frames, "failures": self.failures, "keyframe_dist_m": self.s.keyframe_dist_m,
-                "keyframe_angle_deg": self.s.keyframe_angle_deg}
+                "keyframe_angle_deg": self.s.keyframe_angle_deg,
+                "disparity_offset_px": self.disparity_offset_px, "disparity_offset_std_px": self.disparity_offset_std_px,
+                "disparity_offset_windows": self.offset_windows}
         info.update(meta or {})
-        return VisionMap(list(self.keyframes), self.camera, info)
+        return VisionMap(list(self.keyframes), cam, info)
+
+
+def retriangulated(kp: StereoKeypoints, cam: StereoCamera) -> StereoKeypoints:
+    """`kp` with its points triangulated by `cam` (whose doffs_px may carry an estimated offset),
+    without the keypoints that would then lie at or beyond infinity."""
+    keep = kp.uvd[:, 2] + cam.doffs_px > MIN_DISPARITY_PX
+    kp = kp.subset(np.flatnonzero(keep)) if not keep.all() else kp
+    return StereoKeypoints(kp.uvd, kp.desc, cam.triangulate(kp.uvd), kp.cov_uvd)
 
 
 class VisualRepeat:
@@ -223,6 +296,7 @@ class VisualRepeat:
         return min(cands, key=lambda j: float(np.linalg.norm((self.map.T_i_j(j, i) @ T_i_live)[:3, 3])))
 
     def localize(self, kp: StereoKeypoints) -> RepeatStep:
+        kp = retriangulated(kp, self.map.camera)     # measured as the map was: with its disparity offset
         if self._searching:
             return self._search(kp)
         s = self.s
