@@ -54,6 +54,7 @@ class VisionSettings:
     ba_window: int = 5                # keyframes adjusted together (window_ba.py); < 2: no adjustment
     ba_iters: int = 3                 # Levenberg-Marquardt iterations per new keyframe
     ba_max_landmarks: int = 200       # landmarks per window, longest tracks first (0: all)
+    submap_augment: bool = True       # features tracked between keyframes join the keyframe's submap
     estimate_disparity_offset: bool = True   # self-calibrate the rig's constant disparity error
     disparity_offset_prior_px: float = 1.0   # std of its prior (mean 0) in each window
     # --- repeat

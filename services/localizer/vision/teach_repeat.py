@@ -19,13 +19,15 @@ from services.localizer.vision.camera import StereoCamera
 from services.localizer.vision.features import StereoKeypoints
 from common.se3 import adjoint, rotation_angle_deg
 from common.se3 import inverse as inv_T
-from services.localizer.vision.pose import PoseEstimate, estimate_pose
+from common.se3 import transform
+from services.localizer.vision.pose import PoseEstimate, estimate_pose, match
 from services.localizer.vision.settings import VisionSettings
 from services.localizer.vision.window_ba import KeyframeWindow
 
 log = logging.getLogger("localizer.vision")
 
 MIN_DISPARITY_PX = 0.25     # a keypoint's corrected disparity below this is at or beyond infinity
+MIN_SUBMAP_DEPTH_M = 0.5   # a tracked feature nearer than this to the keyframe's camera is not added
 MAX_OFFSET_PX = 3.0         # a window's disparity offset beyond this is a failed adjustment, not the rig
 
 
@@ -166,6 +168,36 @@ class VisualTeach:
         self._offset_info_mean += info * mean / frames
         self.offset_windows += 1
 
+    def _augment(self, kf: Keyframe, kp: StereoKeypoints, T_live_kf: np.ndarray, pairs: np.ndarray,
+                 cam: StereoCamera) -> None:
+        """Thesis 2.2.3: features the keyframe's submap does not hold, tracked from the previous frame
+        into this one (a descriptor match at the predicted position whose (u, v, d) agrees with the
+        motion), join the submap, placed by this frame's measurement: the repeat pass then finds them
+        when its view differs from the keyframe's (turned, offset sideways, closer)."""
+        if self._last is None or self._last_is_kf:
+            return                   # the previous frame is the keyframe: its features are in already
+        new = np.setdiff1d(np.arange(len(kp)), pairs[:, 0])
+        if len(new) == 0:
+            return
+        live = kp.subset(new)
+        p = transform(T_live_kf @ inv_T(self._T_last_kf), self._last.points)
+        front = p[:, 2] > 0.1
+        pred = np.full((len(p), 3), np.nan)
+        pred[front] = cam.project(p[front])
+        qi, ti = match(live, self._last.desc, self.s, pred[:, :2])
+        e = live.uvd[qi] - pred[ti]
+        agree = np.sum(e * e / (live.cov_uvd[qi] + self._last.cov_uvd[ti]), axis=1) < self.s.inlier_chi2
+        pts = transform(inv_T(T_live_kf), live.points[qi[agree]])
+        ok = pts[:, 2] > MIN_SUBMAP_DEPTH_M
+        if not ok.any():
+            return
+        idx = qi[agree][ok]
+        kf.points = np.vstack([kf.points, pts[ok]])
+        kf.desc = np.vstack([kf.desc, live.desc[idx]])
+        kf.uvd = np.vstack([kf.uvd, cam.project(pts[ok])])   # where the keyframe's camera would see them
+        if kf.cov_uvd is not None:
+            kf.cov_uvd = np.vstack([kf.cov_uvd, live.cov_uvd[idx]])
+
     def add(self, kp: StereoKeypoints) -> TeachStep:
         self.frames += 1
         s = self.s
@@ -199,6 +231,8 @@ class VisualTeach:
             log.debug("teach frame %d not registered: %s", self.frames, reason)
             return TeachStep(False, False, kf.index, np.eye(4), np.full((6, 6), np.inf), est.inliers, reason)
         self._T_vel = T_live_kf @ inv_T(self._T_last_kf)
+        if pairs is not None and s.submap_augment:
+            self._augment(kf, kp, T_live_kf, pairs, cam)
         self._last, self._T_last_kf, self._cov_last, self._last_is_kf = kp, T_live_kf, cov, False
         T_kf_live = inv_T(T_live_kf)
         dist, ang = _motion(T_kf_live)

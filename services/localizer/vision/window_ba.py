@@ -99,6 +99,7 @@ class KeyframeWindow:
         landmark = np.full(len(kp), -1, dtype=np.int64)
         if self.frames and len(pairs):
             prev = self.frames[-1].landmark
+            pairs = pairs[pairs[:, 1] < len(prev)]       # submap points added after the keyframe: no track
             this_i, prev_i = pairs[:, 0], pairs[:, 1]
             new = prev[prev_i] < 0
             ids = np.arange(self._next_id, self._next_id + int(new.sum()))
