@@ -52,7 +52,7 @@ class VisionSettings:
     keyframe_dist_m: float = DEFAULT_SPACING_M
     keyframe_angle_deg: float = 5.0
     ba_window: int = 5                # keyframes adjusted together (window_ba.py); < 2: no adjustment
-    ba_iters: int = 3                 # Levenberg-Marquardt iterations per new keyframe
+    ba_iters: int = 2                 # Levenberg-Marquardt iterations (Huber) per new keyframe, then one Cauchy
     ba_max_landmarks: int = 200       # landmarks per window, longest tracks first (0: all)
     submap_augment: bool = True       # features tracked between keyframes join the keyframe's submap
     estimate_disparity_offset: bool = True   # self-calibrate the rig's constant disparity error

@@ -253,8 +253,8 @@ class VisualTeach:
             kf.points, kf.desc, kf.uvd = cam.triangulate(kf.uvd[keep]), kf.desc[keep], kf.uvd[keep]
             kf.cov_uvd = None if kf.cov_uvd is None else kf.cov_uvd[keep]
         info = {"frames": self.frames, "failures": self.failures, "keyframe_dist_m": self.s.keyframe_dist_m,
-                "keyframe_angle_deg": self.s.keyframe_angle_deg,
-                "disparity_offset_px": self.disparity_offset_px, "disparity_offset_std_px": self.disparity_offset_std_px,
+                "keyframe_angle_deg": self.s.keyframe_angle_deg, "disparity_offset_px": self.disparity_offset_px,
+                "disparity_offset_std_px": self.disparity_offset_std_px,
                 "disparity_offset_windows": self.offset_windows}
         info.update(meta or {})
         return VisionMap(list(self.keyframes), cam, info)
