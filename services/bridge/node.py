@@ -240,7 +240,6 @@ class BridgeService(Service):
                                               w_cmd_applied_radps=s.w_cmd,
                                               rejected_msgs=self.node.decoder.rejected_total))
         if self.renderer is not None:
-            # rendered from the truth pose on a flat world: side slopes tilt the robot, not the images
             # realtime: a newer frame supersedes a dropped one; lockstep: the localizer answers the tick from it
             r.publish(self.k_stereo, self.renderer.frame_for_sample(s, trial),
                       droppable=self.cfg.clock.mode != "lockstep")

@@ -2,7 +2,8 @@
 
 Time advances only through `step()` (one control period, integrated in `substeps` physics steps),
 so the same seed and the same command sequence give the same run. The watchdog lives here, in robot
-time: when the newest command is older than `watchdog_s` the robot brakes to a stop.
+time: when the newest command is older than `watchdog_s` the robot brakes to a stop. Each sample also
+says how the terrain tilts and lowers the body there (terrain.py `Terrain.attitude`), for the camera.
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from common.robot import RobotParams
 from common.scenario import TerrainPatch
-from services.bridge.terrain import Terrain
+from services.bridge.terrain import Attitude, Terrain
 from services.bridge.vehicle import Vehicle
 
 
@@ -36,6 +37,15 @@ class SimSample:
     cmd_age_s: float
     v_cmd: float
     w_cmd: float
+    # the body on the terrain (terrain.py Attitude): roll and pitch in the heading's level frame, and
+    # the ground contact point's height above the flat ground (negative in a rut)
+    roll_rad: float
+    pitch_rad: float
+    z_m: float
+
+    @property
+    def attitude(self) -> Attitude:
+        return Attitude(roll_rad=self.roll_rad, pitch_rad=self.pitch_rad, z_m=self.z_m)
 
 
 class Simulator:
@@ -43,7 +53,7 @@ class Simulator:
                  substeps: int = 10, watchdog_s: float = 0.3):
         self.robot = robot
         self.vehicle = Vehicle(robot)
-        self.terrain = Terrain(terrain, seed)
+        self.terrain = Terrain(terrain, seed, track_m=robot.track_m)
         self.seed = seed
         self.period_s = period_s
         self.substeps = substeps
@@ -110,8 +120,10 @@ class Simulator:
         age = self.t - self._cmd_t
         if tripped is None:
             tripped = age >= self.watchdog_s - 1e-9
+        att = self.terrain.attitude(s.x, s.y, s.theta)
         return SimSample(
             stamp_s=self.t, tick=self.tick, x=s.x, y=s.y, theta=s.theta, v_ground=s.v_ground,
             w_ground=s.w_ground, v_lateral=s.v_lateral, odom_v=self._odom_vw[0], odom_w=self._odom_vw[1],
             odom_x=float(self._odom[0]), odom_y=float(self._odom[1]), odom_theta=float(self._odom[2]),
-            watchdog_tripped=tripped, cmd_age_s=min(age, 1e6), v_cmd=self._v_cmd, w_cmd=self._w_cmd)
+            watchdog_tripped=tripped, cmd_age_s=min(age, 1e6), v_cmd=self._v_cmd, w_cmd=self._w_cmd,
+            roll_rad=att.roll_rad, pitch_rad=att.pitch_rad, z_m=att.z_m)

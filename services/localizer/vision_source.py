@@ -8,11 +8,19 @@ live camera pose relative to that keyframe becomes the robot's SE(2) pose in the
 covariance. Nothing here looks at simulator truth.
 
 Frames: the left camera (x right, y down, z forward) sits at `T_robot_camera` in the robot frame
-(x forward, y left, z up); a vertex frame is the robot frame at its keyframe.
+(x forward, y left, z up, its origin the ground contact point). A vertex frame is the robot frame at its
+keyframe levelled: same origin and heading, z up. A robot tilted by the terrain (a side slope, a rut)
+has its body frame rolled and pitched, and the SE(2) pose the controller tracks is the horizontal one:
+the live robot's ground contact point and heading seen from the vertex's, both projected on the level
+plane. Expressing them in the tilted keyframe body frame instead would shrink a lateral offset by
+cos(roll) and mix in height. Level is what the map's first keyframe says (the teach starts on level
+ground): each keyframe's roll and pitch come from its pose in the first one, T_first_this, whose roll
+and pitch drift only slowly with VO.
 """
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path as FsPath
 
 import cv2
@@ -71,13 +79,31 @@ def _same_calibration(a: StereoCamera, b: StereoCamera) -> str:
     return ""
 
 
-def cov_vertex_robot(T_live_kf: np.ndarray, cov6: np.ndarray, T_rc: np.ndarray) -> np.ndarray:
-    """3x3 covariance of (x, y, yaw) of the robot in the vertex frame, from the 6x6 covariance of the
-    left perturbation T_live_kf = exp(xi) T (xi = translation, rotation), by a central difference."""
-    T_cr = se3.inverse(T_rc)
+def level_from_robot(T_first_robot: np.ndarray) -> np.ndarray:
+    """4x4 rotation from a robot frame to its levelled frame (same heading, z up), from the robot's pose
+    in a level frame: R = Rz(yaw) R_level_robot, so R_level_robot = Rz(-yaw) R."""
+    R = np.asarray(T_first_robot, dtype=float)[:3, :3]
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ R
+    return T
+
+
+def vertex_robot_se2(T_live_kf: np.ndarray, T_rc: np.ndarray, T_level_kf: np.ndarray) -> np.ndarray:
+    """(x, y, yaw) of the live robot in the levelled vertex frame, from the keyframe camera's pose seen
+    from the live camera (T_live_kf) and the keyframe robot's levelling rotation (`level_from_robot`)."""
+    return se3.to_se2(T_level_kf @ T_rc @ se3.inverse(T_live_kf) @ se3.inverse(T_rc))
+
+
+def cov_vertex_robot(T_live_kf: np.ndarray, cov6: np.ndarray, T_rc: np.ndarray,
+                     T_level_kf: np.ndarray | None = None) -> np.ndarray:
+    """3x3 covariance of (x, y, yaw) of the robot in the (levelled) vertex frame, from the 6x6 covariance
+    of the left perturbation T_live_kf = exp(xi) T (xi = translation, rotation), by a central difference."""
+    T_level = np.eye(4) if T_level_kf is None else T_level_kf
 
     def se2_of(T_live_kf_: np.ndarray) -> np.ndarray:
-        return se3.to_se2(T_rc @ se3.inverse(T_live_kf_) @ T_cr)
+        return vertex_robot_se2(T_live_kf_, T_rc, T_level)
 
     J = np.empty((3, 6))
     h = 1e-6
@@ -106,6 +132,7 @@ class VisionSource:
         self.frontend: StereoFrontend | None = None
         self.teach: VisualTeach | None = None
         self.repeat: VisualRepeat | None = None
+        self._T_level_kf: list[np.ndarray] = []     # per keyframe: its robot frame -> levelled vertex frame
         self._vertex = 0
 
     def map_file(self, path_id: str) -> FsPath:
@@ -160,6 +187,8 @@ class VisionSource:
         self.camera = vmap.camera
         self.T_rc = np.asarray(T_rc, dtype=float).reshape(4, 4)
         self.frontend = StereoFrontend(vmap.camera, self.settings)
+        T_cr = se3.inverse(self.T_rc)
+        self._T_level_kf = [level_from_robot(self.T_rc @ kf.T_first_this @ T_cr) for kf in vmap.keyframes]
         self.repeat = VisualRepeat(vmap, self.settings)
         self.repeat.start(0)   # a repeat starts at the beginning of the route
         self._vertex = 0
@@ -184,9 +213,10 @@ class VisionSource:
         step = self.repeat.localize(kp)
         if step.status == "lost":
             return self._no_pose(frame, path_id, "lost", step.reason, matched=step.matched)
-        T_vr = se3.to_se2(self.T_rc @ se3.inverse(step.T_live_kf) @ se3.inverse(self.T_rc))
-        cov = cov_vertex_robot(step.T_live_kf, step.cov, self.T_rc)
         self._vertex = int(step.keyframe)
+        T_level = self._T_level_kf[self._vertex]
+        T_vr = vertex_robot_se2(step.T_live_kf, self.T_rc, T_level)
+        cov = cov_vertex_robot(step.T_live_kf, step.cov, self.T_rc, T_level)
         return LocState(stamp_s=frame.stamp_s, capture_stamp_s=frame.stamp_s, tick=frame.tick,
                         capture_tick=frame.tick, trial=self.trial, path_id=path_id, source="vision",
                         status="ok" if step.status == "ok" else "vo", reason=step.reason, vertex=self._vertex,
