@@ -63,13 +63,16 @@ def test_stereo_vo_drift(kitti):
     assert rel[:, 0].max() < 0.08 and rel[:, 1].max() < 0.3 and rel[:, 2].min() >= 50
 
 
-def _taught_chain(seq, kps, short_px: float = 0.0):
-    """The teach pass over every frame, each disparity measured `short_px` short; (map, drift %, deg/m)."""
-    teach = VisualTeach(seq.camera, S)
+def _taught_chain(seq, kps, short_px: float = 0.0, max_disparity_px: float = np.inf,
+                  settings: VisionSettings = S):
+    """The teach pass over every frame, each disparity measured `short_px` short, only the keypoints
+    of disparity up to `max_disparity_px`; (map, drift %, deg/m)."""
+    teach = VisualTeach(seq.camera, settings)
     for kp in kps:
         uvd = kp.uvd.copy()
+        ok = uvd[:, 2] <= max_disparity_px
         uvd[:, 2] -= short_px
-        ok = uvd[:, 2] > 0.5
+        ok &= uvd[:, 2] > 0.5
         teach.add(StereoKeypoints(uvd[ok], kp.desc[ok], seq.camera.triangulate(uvd[ok]), kp.cov_uvd[ok]))
     vmap = teach.finish()
     dist = float(np.sum(np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1)))
@@ -89,6 +92,18 @@ def test_the_teach_pass_estimates_a_disparity_offset_and_keeps_the_drift(kitti):
     assert abs(off_short - off - 1.0) < 0.1
     assert drift < 1.0 and drift_short < 1.0 and drift_deg < 0.02
     assert vmap_short.camera.doffs_px == pytest.approx(off_short)    # the repeat pass measures with it
+
+
+def test_far_features_only_keep_their_scale_with_the_offset_estimated(kitti):
+    """Only the keypoints beyond ~20 m (disparity <= 20 px, median ~9.6 px: the long-range excerpt's
+    ~10 px) and every disparity 0.8 px short: the chain is ~8 % too long unless the offset is estimated."""
+    seq, kps = kitti
+    _, drift_held, _ = _taught_chain(seq, kps, 0.8, 20.0, VisionSettings(estimate_disparity_offset=False))
+    vmap, drift, drift_deg = _taught_chain(seq, kps, 0.8, 20.0)
+    log.info("far features, 0.8 px short: drift %.2f %% with the offset held, %.2f %% (%.4f deg/m) estimated "
+             "(offset %.3f px)", drift_held, drift, drift_deg, vmap.meta["disparity_offset_px"])
+    assert drift_held > 5.0
+    assert drift < 1.5 and drift_deg < 0.02
 
 
 def test_teach_builds_a_keyframe_per_even_frame_and_repeat_relocalizes_odd_frames(kitti, tmp_path):
