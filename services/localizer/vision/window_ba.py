@@ -192,10 +192,10 @@ class _State:
     offset: float               # disparity offset delta (px)
 
 
-def _model(cam: StereoCamera, prob: _Problem, x: _State, jacobians: bool):
+def _model(cam: StereoCamera, prob: _Problem, x: _State, jacobians: bool, poses: bool = True):
     """Whitened residuals (M, 3) of every observation and, if asked, their Jacobians by the landmark
-    (M, 3, 3), by the observing frame's pose and by the anchor's pose (M, 3, 6 each); by the offset
-    the Jacobian is -1 / sigma_d on the d rows."""
+    (M, 3, 3), by the observing frame's pose and by the anchor's pose (M, 3, 6 each; None unless
+    `poses`); by the offset the Jacobian is -1 / sigma_d on the d rows."""
     T, L = x.T, x.L
     n = len(T)
     T_pairs = (T[:, None] @ inv_T_stack(T)[None]).reshape(n * n, 4, 4)   # [j, a]: anchor a -> frame j
@@ -219,15 +219,17 @@ def _model(cam: StereoCamera, prob: _Problem, x: _State, jacobians: bool):
     Jq[:, 1, 1] = cam.fv * iz
     Jq[:, 1, 2] = -cam.fv * q[:, 1] * iz ** 2
     Jq[:, 2, 2] = -fb * rho * iz ** 2
+    w = prob.inv_sigma[:, :, None]
+    J_l = Jq @ np.concatenate([R[:, :, :2], t[:, :, None]], axis=2)     # by alpha, beta, rho
+    J_l[:, 2, 2] += fb * iz                                              # d's own factor rho
+    if not poses:
+        return r, (J_l * w, None, None)
     dq_j = np.zeros((M, 3, 6))                      # frame j's pose: dq/dxi_j = [rho I, -q^]
     dq_j[:, [0, 1, 2], [0, 1, 2]] = rho[:, None]
     dq_j[:, :, 3:] = -_hat(q)
     da = np.zeros((M, 3, 6))                        # the anchor's: dq/dxi_a = -R_ja [rho I, -ray^]
     da[:, [0, 1, 2], [0, 1, 2]] = rho[:, None]
     da[:, :, 3:] = -_hat(ray)
-    J_l = Jq @ np.concatenate([R[:, :, :2], t[:, :, None]], axis=2)     # by alpha, beta, rho
-    J_l[:, 2, 2] += fb * iz                                              # d's own factor rho
-    w = prob.inv_sigma[:, :, None]
     return r, (J_l * w, (Jq @ dq_j) * w, (-(Jq @ R) @ da) * w)
 
 
@@ -266,7 +268,7 @@ def _refine_landmarks(cam: StereoCamera, prob: _Problem, x: _State, k: float, it
     per_lm = _per_landmark(prob)
     L = x.L
     for _ in range(iters):
-        r, (J_l, _, _) = _model(cam, prob, _State(x.T, L, x.offset), True)
+        r, (J_l, _, _) = _model(cam, prob, _State(x.T, L, x.offset), True, poses=False)
         w, _ = _robust(r, k, "huber")
         wJl = w[:, None, None] * J_l
         H = (per_lm @ (np.transpose(J_l, (0, 2, 1)) @ wJl).reshape(-1, 9)).reshape(-1, 3, 3)
