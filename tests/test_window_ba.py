@@ -60,7 +60,7 @@ def test_jacobians_match_finite_differences():
     s = VisionSettings()
     P = _scene(rng, 5.0, 60.0, 80, 4)
     desc = rng.integers(0, 256, (80, 32), dtype=np.uint8)
-    win = KeyframeWindow(CAM, 4)
+    win = KeyframeWindow(CAM, VisionSettings(ba_window=4))
     prev = None
     for k in range(4):
         kp = _observe(rng, P - [0.0, 0.0, STEP_M * k], desc, s, 0.0)

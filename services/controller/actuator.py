@@ -149,8 +149,9 @@ class ActuatorLag:
 
     def state_before(self, tick: int, command_at: Callable[[int], tuple[float, float] | None]) -> tuple[float, float]:
         """xi (the speeds reached, or the speed and the curvature with a rate limit) at the start of
-        `tick`, from the commands applied before it (none known: standing still). The lag forgets (to exp(-10)) within 10 tau, so only that many periods are replayed, from the drive
-        settled at the oldest of them. A period without a recorded command (a skipped tick) held the one
+        `tick`, from the commands applied before it (none known: standing still). The lag forgets (to
+        exp(-10)) within 10 tau, so only that many periods are replayed, from the drive settled at the
+        oldest of them. A period without a recorded command (a skipped tick) held the one
         before it; before the first recorded command the robot stood still."""
         n = self.history_periods
         u = command_at(tick - n) or (0.0, 0.0)

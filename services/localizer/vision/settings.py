@@ -56,7 +56,7 @@ class VisionSettings:
     ba_max_landmarks: int = 200       # landmarks per window, longest tracks first (0: all)
     submap_augment: bool = True       # features tracked between keyframes join the keyframe's submap
     estimate_disparity_offset: bool = True   # self-calibrate the rig's constant disparity error
-    disparity_offset_prior_px: float = 1.0   # std of its prior (mean 0) in each window
+    disparity_offset_prior_px: float = 1.0   # std of its prior (mean 0) before the first window
     # --- repeat
     search_radius: int = 5            # keyframes either side of the hint tried at start / after loss
     nearest_window: int = 3           # keyframes either side of the current one eligible as nearest

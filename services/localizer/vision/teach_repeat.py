@@ -27,7 +27,7 @@ from services.localizer.vision.window_ba import KeyframeWindow
 log = logging.getLogger("localizer.vision")
 
 MIN_DISPARITY_PX = 0.25     # a keypoint's corrected disparity below this is at or beyond infinity
-MIN_SUBMAP_DEPTH_M = 0.5   # a tracked feature nearer than this to the keyframe's camera is not added
+MIN_SUBMAP_DEPTH_M = 0.5    # a tracked feature nearer than this to the keyframe's camera is not added
 MAX_OFFSET_PX = 3.0         # a window's disparity offset beyond this is a failed adjustment, not the rig
 
 
@@ -114,9 +114,7 @@ class VisualTeach:
         self._last_is_kf = True
         self._T_vel: np.ndarray | None = None
         self.frames = self.failures = 0
-        self._window = KeyframeWindow(camera, settings.ba_window, settings.huber_k, settings.ba_iters,
-                                      settings.ba_max_landmarks) \
-            if settings.ba_window >= 2 else None
+        self._window = KeyframeWindow(camera, settings) if settings.ba_window >= 2 else None
         # the disparity offset's estimate: information (1/px^2) and information-weighted mean, from the
         # prior (mean 0) and what each window's data add
         self._offset_info = settings.disparity_offset_prior_px ** -2
@@ -144,14 +142,15 @@ class VisualTeach:
             return
         s = self.s
         self._window.push(kp, T_prev_this, pairs)
-        prior = (self.disparity_offset_px, self.disparity_offset_std_px) if s.estimate_disparity_offset else None
-        out = self._window.adjust(*(prior or (self.disparity_offset_px, None)))
+        prior_std = self.disparity_offset_std_px if s.estimate_disparity_offset else None   # None: held
+        out = self._window.adjust(self.disparity_offset_px, prior_std)
         if out is None:
             return
         for kf, edge in zip(self.keyframes[len(self.keyframes) - len(out.edges):], out.edges):
             kf.T_prev_this = edge
-        if prior is not None and out.offset_std_px is not None:
-            self._learn_offset(prior, out.offset_px, out.offset_std_px, len(out.edges) + 1)
+        if prior_std is not None and out.offset_std_px is not None:
+            self._learn_offset((self.disparity_offset_px, prior_std), out.offset_px, out.offset_std_px,
+                               len(out.edges) + 1)
 
     def _learn_offset(self, prior: tuple[float, float], offset: float, std: float, frames: int) -> None:
         """Fold a window's estimate into the running one: what its data alone say (its posterior less
@@ -249,7 +248,7 @@ class VisualTeach:
         whole pass (the map's camera carries it in doffs_px, so the repeat pass measures with it)."""
         cam = self._calibrated()
         for kf in self.keyframes:
-            keep = kf.uvd[:, 2] + cam.doffs_px > MIN_DISPARITY_PX
+            keep = _finite_depth(kf.uvd, cam)
             kf.points, kf.desc, kf.uvd = cam.triangulate(kf.uvd[keep]), kf.desc[keep], kf.uvd[keep]
             kf.cov_uvd = None if kf.cov_uvd is None else kf.cov_uvd[keep]
         info = {"frames": self.frames, "failures": self.failures, "keyframe_dist_m": self.s.keyframe_dist_m,
@@ -263,9 +262,13 @@ class VisualTeach:
 def retriangulated(kp: StereoKeypoints, cam: StereoCamera) -> StereoKeypoints:
     """`kp` with its points triangulated by `cam` (whose doffs_px may carry an estimated offset),
     without the keypoints that would then lie at or beyond infinity."""
-    keep = kp.uvd[:, 2] + cam.doffs_px > MIN_DISPARITY_PX
+    keep = _finite_depth(kp.uvd, cam)
     kp = kp.subset(np.flatnonzero(keep)) if not keep.all() else kp
     return StereoKeypoints(kp.uvd, kp.desc, cam.triangulate(kp.uvd), kp.cov_uvd)
+
+
+def _finite_depth(uvd: np.ndarray, cam: StereoCamera) -> np.ndarray:
+    return uvd[:, 2] + cam.doffs_px > MIN_DISPARITY_PX
 
 
 class VisualRepeat:
