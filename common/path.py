@@ -5,6 +5,7 @@ vertex (thesis fig. 2.5) gives the lateral error directly as y and the heading e
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,9 @@ class Path:
         self.length_m = float(self.s[-1])
         self.curvature = self._curvature(curvature_window_m)
         self._tree = cKDTree(poses[:, :2])
+        self._rows = self.poses.tolist()             # the same poses as floats: project() reads a few per call
+        self._s_list = self.s.tolist()
+        self._seg_list = seg.tolist()
 
     # --- construction -------------------------------------------------------------------
     @classmethod
@@ -82,14 +86,19 @@ class Path:
         """Nearest vertex by Euclidean distance. With a hint (the last known vertex) only a window
         around it is searched, O(window), which also keeps a route that crosses itself or closes a
         loop from jumping to the wrong pass; without one, a k-d tree search, O(log n)."""
-        xy = np.asarray(xy, dtype=float)[:2]
         if hint is None:
-            return int(self._tree.query(xy)[1])
-        hint = int(np.clip(hint, 0, len(self) - 1))
-        lo = max(0, hint - int(np.ceil(back_m / self.spacing_m)))
-        hi = min(len(self), hint + int(np.ceil(ahead_m / self.spacing_m)) + 1)
-        d2 = np.sum((self.poses[lo:hi, :2] - xy) ** 2, axis=1)
-        return lo + int(np.argmin(d2))
+            return int(self._tree.query(np.asarray(xy, dtype=float)[:2])[1])
+        x, y = float(xy[0]), float(xy[1])
+        hint = min(max(int(hint), 0), len(self) - 1)
+        lo = max(0, hint - math.ceil(back_m / self.spacing_m))
+        hi = min(len(self), hint + math.ceil(ahead_m / self.spacing_m) + 1)
+        # a few dozen vertices: a plain loop beats numpy's per-call overhead here
+        best, best_d2 = lo, math.inf
+        for k, (px, py, _) in enumerate(self._rows[lo:hi], lo):
+            d2 = (px - x) ** 2 + (py - y) ** 2
+            if d2 < best_d2:
+                best, best_d2 = k, d2
+        return best
 
     def relative_pose(self, vertex: int, T_world_robot) -> np.ndarray:
         """T_vertex_robot: the robot pose in the frame of `vertex` (thesis fig. 2.5)."""
@@ -100,33 +109,34 @@ class Path:
         return i, self.relative_pose(i, T_world_robot)
 
     def project(self, T_world_robot, hint: int | None = None) -> Projection:
-        """Foot point on the polyline next to the nearest vertex, for accurate error metrics."""
-        T = np.asarray(T_world_robot, dtype=float)
-        i = self.nearest_vertex(T, hint)
+        """Foot point on the polyline next to the nearest vertex, for accurate error metrics. Scalar
+        arithmetic past the vertex search: the controller and the recorder call this several times a
+        tick, and numpy's per-call overhead on 2-vectors was most of its cost."""
+        x, y, th = (float(q) for q in T_world_robot[:3])
+        i = self.nearest_vertex((x, y), hint)
+        rows, n = self._rows, len(self._rows)
         best = None
         for a in (i - 1, i):
-            if a < 0 or a + 1 >= len(self):
+            if a < 0 or a + 1 >= n:
                 continue
-            p0, p1 = self.poses[a, :2], self.poses[a + 1, :2]
-            d = p1 - p0
-            t = float(np.clip(np.dot(T[:2] - p0, d) / np.dot(d, d), 0.0, 1.0))
-            foot = p0 + t * d
-            dist2 = float(np.sum((T[:2] - foot) ** 2))
+            (x0, y0, _), (x1, y1, _) = rows[a], rows[a + 1]
+            dx, dy = x1 - x0, y1 - y0
+            t = min(max(((x - x0) * dx + (y - y0) * dy) / (dx * dx + dy * dy), 0.0), 1.0)
+            ex, ey = x - (x0 + t * dx), y - (y0 + t * dy)
+            dist2 = ex * ex + ey * ey
             if best is None or dist2 < best[0]:
-                best = (dist2, a, t)
-        _, a, t = best
-        p0, p1 = self.poses[a], self.poses[a + 1]
-        heading = p0[2] + t * float(se2.wrap(p1[2] - p0[2]))
-        d = p1[:2] - p0[:2]
-        rel = T[:2] - (p0[:2] + t * d)
-        tangent = d / np.linalg.norm(d)
-        lateral = float(tangent[0] * rel[1] - tangent[1] * rel[0])
+                best = (dist2, a, t, dx, dy, ex, ey)
+        _, a, t, dx, dy, ex, ey = best
+        h0, h1 = rows[a][2], rows[a + 1][2]
+        heading = h0 + t * _wrap(h1 - h0)
+        norm = math.sqrt(dx * dx + dy * dy)
+        tx, ty = dx / norm, dy / norm
         along_extra = 0.0
-        if (a == 0 and t == 0.0) or (a == len(self) - 2 and t == 1.0):
-            along_extra = float(np.dot(rel, tangent))  # before the start / beyond the end
-        return Projection(vertex=i, T_vertex_robot=self.relative_pose(i, T),
-                          distance_m=float(self.s[a] + t * self.segment_lengths[a] + along_extra),
-                          lateral_m=lateral, heading_rad=float(se2.wrap(T[2] - heading)), segment=a)
+        if (a == 0 and t == 0.0) or (a == n - 2 and t == 1.0):
+            along_extra = ex * tx + ey * ty   # before the start / beyond the end
+        return Projection(vertex=i, T_vertex_robot=_between(rows[i], x, y, th),
+                          distance_m=self._s_list[a] + t * self._seg_list[a] + along_extra,
+                          lateral_m=tx * ey - ty * ex, heading_rad=_wrap(th - heading), segment=a)
 
     def _segments(self, distance_m):
         """Arc length(s) clamped to the route and the index of the segment each lies on."""
@@ -186,3 +196,16 @@ class RouteRecorder:
         if len(self.vertices) < 2:
             raise ValueError(f"teach recorded only {len(self.vertices)} vertex(es); drive further")
         return Path(path_id, np.array(self.vertices), loop=loop, spacing_m=self.spacing_m, taught_by=taught_by)
+
+
+def _wrap(angle: float) -> float:
+    """se2.wrap for one float."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _between(T_wa, x: float, y: float, th: float) -> np.ndarray:
+    """se2.between(T_wa, (x, y, th)) for one pose, in scalars."""
+    ax, ay, ath = T_wa
+    c, s = math.cos(ath), math.sin(ath)
+    ix, iy = -c * ax - s * ay, s * ax - c * ay
+    return np.array([ix + c * x + s * y, iy - s * x + c * y, _wrap(_wrap(-ath) + th)])

@@ -79,6 +79,32 @@ def test_projection_on_straight_and_arc():
     assert abs(pr.heading_rad) < 0.02
 
 
+def test_projection_agrees_with_se2_and_a_brute_force_foot_point():
+    """project() works in scalars; the reference here is numpy and se2: the foot point on the nearest
+    of the two segments at the nearest vertex, and T_vertex_robot from se2.between."""
+    p = straight_then_arc()
+    r = np.random.default_rng(3)
+    for _ in range(300):
+        i = int(r.integers(0, len(p)))
+        T = p.poses[i] + r.normal(0.0, [0.3, 0.3, 1.0])
+        pr = p.project(T, hint=int(np.clip(i + r.integers(-2, 3), 0, len(p) - 1)))
+        assert pr.vertex == p.nearest_vertex(T)
+        np.testing.assert_allclose(pr.T_vertex_robot, se2.between(p.poses[pr.vertex], T), atol=1e-12)
+        feet = []
+        for a in (pr.vertex - 1, pr.vertex):
+            if 0 <= a < len(p) - 1:
+                p0, d = p.poses[a, :2], p.poses[a + 1, :2] - p.poses[a, :2]
+                t = np.clip(np.dot(T[:2] - p0, d) / np.dot(d, d), 0.0, 1.0)
+                feet.append((np.sum((T[:2] - p0 - t * d) ** 2), a, t))
+        _, a, t = min(feet)
+        d = p.poses[a + 1, :2] - p.poses[a, :2]
+        assert pr.segment == a
+        e = T[:2] - p.poses[a, :2] - t * d
+        assert pr.lateral_m == pytest.approx((d[0] * e[1] - d[1] * e[0]) / np.linalg.norm(d), abs=1e-12)
+        if 0.0 < t < 1.0:
+            assert pr.distance_m == pytest.approx(p.s[a] + t * p.segment_lengths[a], abs=1e-12)
+
+
 def test_relative_pose_is_fig_2_5():
     p = straight_then_arc()
     i = p.nearest_vertex((4.1, 0.3))
