@@ -110,8 +110,8 @@ class Path:
 
     def project(self, T_world_robot, hint: int | None = None) -> Projection:
         """Foot point on the polyline next to the nearest vertex, for accurate error metrics. Scalar
-        arithmetic past the vertex search: the controller and the experiment runner call this several times a
-        tick, and numpy's per-call overhead on 2-vectors was most of its cost."""
+        arithmetic past the vertex search: the controller and the experiment runner call this several
+        times a tick, and numpy's per-call overhead on 2-vectors was most of its cost."""
         x, y, th = (float(q) for q in T_world_robot[:3])
         i = self.nearest_vertex((x, y), hint)
         rows, n = self._rows, len(self._rows)
