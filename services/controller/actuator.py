@@ -64,6 +64,21 @@ def _coeffs(tau: float, dt: float) -> tuple[float, float]:
     return beta, (tau / dt) * (1.0 - beta)
 
 
+@lru_cache(maxsize=16)
+def _lag_matrices(v_coeffs: tuple[float, float], w_coeffs: tuple[float, float], K: int) -> tuple[np.ndarray, ...]:
+    """ActuatorLag.matrices, built once per lag and horizon (every step's problem needs them)."""
+    out = []
+    j = np.arange(K)
+    diff = j[:, None] - j[None, :]
+    for beta, a in (v_coeffs, w_coeffs):
+        L = np.where(diff > 0, a * (1.0 - beta) * beta ** np.maximum(diff - 1, 0), 0.0)
+        L[j, j] = 1.0 - a
+        out += [L, a * beta ** j]
+    for m in out:
+        m.setflags(write=False)
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class ActuatorLag:
     tau_v_s: float = 0.0
@@ -163,12 +178,5 @@ class ActuatorLag:
 
     def matrices(self, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For a horizon of K periods from achieved speeds xi_0: ubar = L u + c xi_0 per axis. Returns
-        (L_v, c_v, L_w, c_w); L lower triangular (K, K), c (K,)."""
-        out = []
-        for beta, a in self._both():
-            j = np.arange(K)
-            diff = j[:, None] - j[None, :]
-            L = np.where(diff > 0, a * (1.0 - beta) * beta ** np.maximum(diff - 1, 0), 0.0)
-            L[j, j] = 1.0 - a
-            out += [L, a * beta ** j]
-        return tuple(out)
+        (L_v, c_v, L_w, c_w), read-only; L lower triangular (K, K), c (K,)."""
+        return _lag_matrices(*self._both(), K)
