@@ -31,12 +31,7 @@ prediction's recent-maximum rule): a new
 exceedance widens at once, and the widening is forgotten WINDOW ticks after the errors that asked
 for it, so a corner's surprise does not slow the straight that follows for the rest of the trial.
 With exchangeable errors about 1 / (WINDOW + 1) of the predictions leave their widened 3-sigma
-region. The factors never fall along the horizon, kappa_j >= kappa_i for i < j. A model error that begins
-now shows whole in the next one-step prediction, but a 1 s prediction realized then was made before it
-began and shows a tenth of it: the 1 s step's own needs grow to its size only over the next ten ticks,
-and the 1 s predictions made meanwhile would keep the old spread (the misses came in runs of 3-30). A
-bias grows over the horizon faster than a modelled random walk (by j against sqrt(j)), so what a short
-step needs a longer one needs at least. A new route starts from the teach pass's factors (identification.horizon_factors), kept as a
+region. A new route starts from the teach pass's factors (identification.horizon_factors), kept as a
 floor until a step has seen WINDOW predictions; a later trial starts from the last one's window.
 
 The errors of a place repeat (a rough patch, a slope: the premise of learning from experience), and a
@@ -99,9 +94,6 @@ class SpreadCalibration:
 
     def factors_at(self, s_m: float | None) -> np.ndarray:
         """kappa_j for a prediction made at route distance `s_m` (None: the recent window's alone)."""
-        return np.maximum.accumulate(self._at_place(s_m))
-
-    def _at_place(self, s_m: float | None) -> np.ndarray:
         if s_m is None or not math.isfinite(s_m) or not self.places_before:
             return self.scales.copy()
         b = math.floor(s_m / PLACE_BIN_M)
