@@ -50,6 +50,7 @@ def services_of(sc: Scenario) -> tuple[str, ...]:
 
 READY_TIMEOUT_S = 60.0         # how long the runner waits for the services to be up
 STOPPED_ENDS_TRIAL_S = 5.0     # robot time a controller may stay stopped before the runner ends the trial
+LATE_STATUS_LOCKSTEP_S = 30.0  # wall time the runner waits for the last stepped tick's status (lockstep never drops it)
 
 
 class ExperimentError(RuntimeError):
@@ -429,11 +430,14 @@ class Experiment:
 
     def _late_statuses(self, rec: TrialRecord) -> None:
         """The controller's answers to the last stepped ticks may reach the runner after the bridge's end
-        event (another publisher): wait, at most 1 s, for the one before the last stepped tick, so the
-        statuses a summary counts (TrialRecord.stepped_status) do not depend on the wall clock."""
+        event (another publisher): wait for the one before the last stepped tick, so the statuses a
+        summary counts (TrialRecord.stepped_status) do not depend on the wall clock. In lockstep that
+        status is never dropped, so the wait is bounded only against a controller that died (a loaded
+        machine can hold it back more than a second); in realtime it may have been dropped: 1 s."""
         if not rec.truth:
             return
-        last, deadline, others = rec.truth[-1].tick, time.monotonic() + 1.0, []
+        wait_s = LATE_STATUS_LOCKSTEP_S if self.sc.sim.clock == "lockstep" else 1.0
+        last, deadline, others = rec.truth[-1].tick, time.monotonic() + wait_s, []
         while not any(s.tick >= last - 1 for s in rec.status[-3:]) and time.monotonic() < deadline:
             try:
                 kind, msg = self.events.get(timeout=0.1)
