@@ -11,7 +11,7 @@ import math
 import types
 import typing
 from functools import lru_cache
-from typing import Any, Literal, Union
+from typing import Any, Callable, Literal, Union
 
 
 class TypeCheckError(ValueError):
@@ -37,95 +37,187 @@ def _describe(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+Converter = Callable[[Any, str], Any]     # (value, dotted path for errors) -> converted value
+
+
 def coerce(tp: Any, value: Any, where: str = "", *, require_all: bool = False) -> Any:
     """Return `value` converted to type `tp`, or raise TypeCheckError.
 
     require_all: dataclass fields with defaults must still be present (wire messages);
     config files leave it False so that defaults apply.
     """
+    return converter(tp, require_all)(value, where)
+
+
+def from_dict(cls: type, data: Any, where: str = "", *, require_all: bool = False) -> Any:
+    """Build dataclass `cls` from a mapping; unknown keys and missing required keys are errors."""
+    if not isinstance(data, dict):
+        _fail(where, f"expected a table/map, got {_describe(data)}")
+    return converter(cls, require_all)(data, where)
+
+
+@lru_cache(maxsize=None)
+def converter(tp: Any, require_all: bool = False) -> Converter:
+    """The checking conversion for annotation `tp`, built once per type: every bus message is decoded
+    through it, and walking the annotations anew per message cost more than the msgpack decoding."""
     origin = typing.get_origin(tp)
     if tp is Any:
-        return value
+        return lambda value, where: value
     if origin is Literal:
-        allowed = typing.get_args(tp)
-        if value not in allowed or isinstance(value, bool) != any(isinstance(a, bool) for a in allowed):
+        return _literal(typing.get_args(tp))
+    if origin is Union or origin is types.UnionType:
+        return _union(typing.get_args(tp), require_all)
+    scalar = _SCALAR_CONVERTERS.get(tp)
+    if scalar is not None:
+        return scalar
+    if origin is list:
+        return _list(typing.get_args(tp)[0], require_all)
+    if origin is tuple:
+        return _tuple(typing.get_args(tp), require_all)
+    if origin is dict:
+        return _dict(*typing.get_args(tp), require_all)
+    if dataclasses.is_dataclass(tp):
+        return _dataclass(tp, require_all)
+
+    def unsupported(value: Any, where: str) -> Any:
+        raise TypeError(f"{where}: unsupported annotation {tp!r}")
+    return unsupported
+
+
+def _literal(allowed: tuple) -> Converter:
+    wants_bool = any(isinstance(a, bool) for a in allowed)
+
+    def conv(value: Any, where: str) -> Any:
+        if value not in allowed or isinstance(value, bool) != wants_bool:
             _fail(where, f"must be one of {list(allowed)}, got {_describe(value)}")
         return value
-    if origin is Union or origin is types.UnionType:
-        args = typing.get_args(tp)
+    return conv
+
+
+def _union(args: tuple, require_all: bool) -> Converter:
+    nullable = type(None) in args
+    alternatives = [converter(a, require_all) for a in args if a is not type(None)]
+
+    def conv(value: Any, where: str) -> Any:
         if value is None:
-            if type(None) in args:
+            if nullable:
                 return None
             _fail(where, "must not be null")
         errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
+        for alt in alternatives:
             try:
-                return coerce(arg, value, where, require_all=require_all)
+                return alt(value, where)
             except TypeCheckError as exc:
                 errors.append(str(exc))
         raise TypeCheckError(errors[0] if len(errors) == 1 else f"{where}: no alternative matched ({'; '.join(errors)})")
-    if tp is float:
+    return conv
+
+
+def _float(value: Any, where: str) -> float:
+    if type(value) is not float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             _fail(where, f"expected a number, got {_describe(value)}")
-        out = float(value)
-        if not math.isfinite(out):
-            _fail(where, f"must be finite, got {out}")
-        return out
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            _fail(where, f"expected an integer, got {_describe(value)}")
-        return int(value)
-    if tp is bool:
-        if not isinstance(value, bool):
-            _fail(where, f"expected true/false, got {_describe(value)}")
-        return value
-    if tp is str:
-        if not isinstance(value, str):
-            _fail(where, f"expected a string, got {_describe(value)}")
-        return value
-    if tp is bytes:
-        if not isinstance(value, (bytes, bytearray)):
-            _fail(where, f"expected bytes, got {type(value).__name__}")
-        return bytes(value)
-    if origin in (list, tuple, dict):
-        return _coerce_container(origin, tp, value, where, require_all)
-    if dataclasses.is_dataclass(tp):
-        if isinstance(value, tp):
-            return value
-        return from_dict(tp, value, where, require_all=require_all)
-    raise TypeError(f"{where}: unsupported annotation {tp!r}")
+        value = float(value)
+    if not math.isfinite(value):
+        _fail(where, f"must be finite, got {value}")
+    return value
 
 
-def _coerce_container(origin: Any, tp: Any, value: Any, where: str, require_all: bool) -> Any:
-    """coerce() for list[...], tuple[...] and dict[...]."""
-    if origin is list:
-        (item_tp,) = typing.get_args(tp)
+def _int(value: Any, where: str) -> int:
+    if type(value) is int:
+        return value
+    if isinstance(value, bool) or not isinstance(value, int):
+        _fail(where, f"expected an integer, got {_describe(value)}")
+    return int(value)
+
+
+def _bool(value: Any, where: str) -> bool:
+    if not isinstance(value, bool):
+        _fail(where, f"expected true/false, got {_describe(value)}")
+    return value
+
+
+def _str(value: Any, where: str) -> str:
+    if not isinstance(value, str):
+        _fail(where, f"expected a string, got {_describe(value)}")
+    return value
+
+
+def _bytes(value: Any, where: str) -> bytes:
+    if not isinstance(value, (bytes, bytearray)):
+        _fail(where, f"expected bytes, got {type(value).__name__}")
+    return bytes(value)
+
+
+_SCALAR_CONVERTERS: dict[Any, Converter] = {float: _float, int: _int, bool: _bool, str: _str, bytes: _bytes}
+
+
+def _list(item_tp: Any, require_all: bool) -> Converter:
+    item = converter(item_tp, require_all)
+
+    def conv(value: Any, where: str) -> list:
         if not isinstance(value, (list, tuple)):
             _fail(where, f"expected a list, got {_describe(value)}")
         fast = _plain_numbers(item_tp, value)
         if fast is not None:
             return fast
-        return [coerce(item_tp, v, f"{where}[{i}]", require_all=require_all) for i, v in enumerate(value)]
-    if origin is tuple:
-        args = typing.get_args(tp)
+        return [item(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    return conv
+
+
+def _tuple(args: tuple, require_all: bool) -> Converter:
+    if len(args) == 2 and args[1] is Ellipsis:
+        as_list = _list(args[0], require_all)
+        return lambda value, where: tuple(as_list(value, where))
+    items = [converter(a, require_all) for a in args]
+
+    def conv(value: Any, where: str) -> tuple:
         if not isinstance(value, (list, tuple)):
             _fail(where, f"expected a list, got {_describe(value)}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            fast = _plain_numbers(args[0], value)
-            if fast is not None:
-                return tuple(fast)
-            return tuple(coerce(args[0], v, f"{where}[{i}]", require_all=require_all) for i, v in enumerate(value))
-        if len(value) != len(args):
-            _fail(where, f"expected {len(args)} elements, got {len(value)}")
-        return tuple(coerce(a, v, f"{where}[{i}]", require_all=require_all) for i, (a, v) in enumerate(zip(args, value)))
-    if origin is dict:
-        key_tp, val_tp = typing.get_args(tp)
+        if len(value) != len(items):
+            _fail(where, f"expected {len(items)} elements, got {len(value)}")
+        return tuple(c(v, f"{where}[{i}]") for i, (c, v) in enumerate(zip(items, value)))
+    return conv
+
+
+def _dict(key_tp: Any, val_tp: Any, require_all: bool) -> Converter:
+    key, val = converter(key_tp), converter(val_tp, require_all)
+
+    def conv(value: Any, where: str) -> dict:
         if not isinstance(value, dict):
             _fail(where, f"expected a table/map, got {_describe(value)}")
-        return {coerce(key_tp, k, f"{where}.<key>"): coerce(val_tp, v, f"{where}.{k}", require_all=require_all)
-                for k, v in value.items()}
+        return {key(k, f"{where}.<key>"): val(v, f"{where}.{k}") for k, v in value.items()}
+    return conv
+
+
+def _dataclass(cls: type, require_all: bool) -> Converter:
+    fields: list[tuple[str, Converter, bool]] = []     # name, converter, must be present; built at first use
+    names = frozenset(field_names(cls))
+
+    def conv(value: Any, where: str) -> Any:
+        if isinstance(value, cls):
+            return value
+        if not isinstance(value, dict):
+            _fail(where, f"expected a table/map, got {_describe(value)}")
+        if not fields:       # not at build time: a field's type may name a class defined later
+            hints = _hints(cls)
+            fields.extend((f.name, converter(hints[f.name], require_all), require_all or (
+                f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING))
+                for f in dataclasses.fields(cls))
+        if not names.issuperset(value):
+            unknown = [k for k in value if k not in names]
+            _fail(where, f"unknown key(s) {sorted(map(str, unknown))}; allowed: {list(field_names(cls))}")
+        kwargs = {}
+        for name, c, needed in fields:
+            if name in value:
+                kwargs[name] = c(value[name], f"{where}.{name}" if where else name)
+            elif needed:
+                _fail(f"{where}.{name}" if where else name, "missing")
+        try:
+            return cls(**kwargs)
+        except (ValueError, TypeError) as exc:  # __post_init__ validation
+            _fail(where, str(exc))
+    return conv
 
 
 def _plain_numbers(item_tp: Any, value: list | tuple) -> list | None:
@@ -140,35 +232,17 @@ def _plain_numbers(item_tp: Any, value: list | tuple) -> list | None:
     return list(map(float, value)) if all(map(math.isfinite, value)) else None
 
 
-def from_dict(cls: type, data: Any, where: str = "", *, require_all: bool = False) -> Any:
-    """Build dataclass `cls` from a mapping; unknown keys and missing required keys are errors."""
-    if not isinstance(data, dict):
-        _fail(where, f"expected a table/map, got {_describe(data)}")
-    hints = _hints(cls)
-    names = field_names(cls)
-    unknown = [k for k in data if k not in names]
-    if unknown:
-        _fail(where, f"unknown key(s) {sorted(map(str, unknown))}; allowed: {list(names)}")
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        sub = f"{where}.{f.name}" if where else f.name
-        if f.name in data:
-            kwargs[f.name] = coerce(hints[f.name], data[f.name], sub, require_all=require_all)
-        elif require_all or (f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING):
-            _fail(sub, "missing")
-    try:
-        return cls(**kwargs)
-    except (ValueError, TypeError) as exc:  # __post_init__ validation
-        _fail(where, str(exc))
-
-
 _SCALARS = {float, int, str, bool, bytes, type(None)}
 
 
 def to_dict(obj: Any) -> Any:
     """Dataclass -> plain dict/list tree (tuples become lists), ready for msgpack or JSON."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {name: to_dict(getattr(obj, name)) for name in field_names(type(obj))}
+    kind = type(obj)
+    if kind in _SCALARS:
+        return obj
+    names = _dataclass_fields(kind)
+    if names is not None:
+        return {name: to_dict(getattr(obj, name)) for name in names}
     if isinstance(obj, (list, tuple)):
         if set(map(type, obj)) <= _SCALARS:
             return list(obj)
@@ -176,3 +250,9 @@ def to_dict(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {k: to_dict(v) for k, v in obj.items()}
     return obj
+
+
+@lru_cache(maxsize=None)
+def _dataclass_fields(kind: type) -> tuple[str, ...] | None:
+    """The field names of instances of `kind` if it is a dataclass (not of a dataclass's class object)."""
+    return field_names(kind) if dataclasses.is_dataclass(kind) else None
