@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 
 import cv2
 import numpy as np
@@ -337,28 +336,6 @@ def test_same_inputs_same_images_and_lighting_differs_per_trial(world, route):
     flat = StereoConfig(lighting_change=0.0, noise_dn=0.0)
     r = StereoRenderer(flat, world, SEED)
     assert np.array_equal(r.render(*pose, trial=1)[0], r.render(*pose, trial=5)[0])
-
-
-@pytest.mark.parametrize("attitude, limit_ms", [(LEVEL, 40.0), (TILTED, 80.0)], ids=["level", "tilted"])
-def test_render_time_budget(world, route, attitude, limit_ms):
-    """Both 640x480 images on one core; the budget is 15 ms level and 30 ms tilted (per-frame bands in
-    column tiles, rotated texture reads), asserted loosely for loaded CI machines."""
-    ren = StereoRenderer(StereoConfig(lighting_change=0.5), world, SEED)
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        ps = poses(route, 5)
-        ren.render(*ps[0], v=1.0, w=0.3, attitude=attitude)
-        times = []
-        for i in range(25):
-            t0 = time.perf_counter()
-            ren.render(*ps[i % 5], v=1.0, w=0.3, trial=1, tick=i, attitude=attitude)
-            times.append(time.perf_counter() - t0)
-    finally:
-        cv2.setNumThreads(threads)
-    med = float(np.median(times)) * 1e3
-    print(f"stereo render (2 x 640x480, 1 thread, {attitude}): median {med:.1f} ms")
-    assert med < limit_ms
 
 
 @pytest.mark.parametrize("overrides", [{}, {"pitch_deg": 45.0}, {"pitch_deg": -10.0, "hfov_deg": 110.0},
