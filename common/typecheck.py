@@ -201,9 +201,9 @@ def _dataclass(cls: type, require_all: bool) -> Converter:
             _fail(where, f"expected a table/map, got {_describe(value)}")
         if not fields:       # not at build time: a field's type may name a class defined later
             hints = _hints(cls)
-            fields.extend((f.name, converter(hints[f.name], require_all), require_all or (
+            fields[:] = [(f.name, converter(hints[f.name], require_all), require_all or (
                 f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING))
-                for f in dataclasses.fields(cls))
+                for f in dataclasses.fields(cls)]     # one assignment: two first decodes on two threads agree
         if not names.issuperset(value):
             unknown = [k for k in value if k not in names]
             _fail(where, f"unknown key(s) {sorted(map(str, unknown))}; allowed: {list(field_names(cls))}")
