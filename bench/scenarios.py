@@ -21,6 +21,13 @@ Figures per family, from each run's summary.json (trial k of a run: its k-th ent
 - `learning_gain_median`: median over scenarios of 1 - max_lateral_m(last trial) / max_lateral_m(trial 1),
   `travel_time_gain_median` the same of travel_time_s; only scenarios whose first and last trials
   both completed count (`gain_scenarios` of them); 0.5 means half the error (or time) of trial 1;
+- `travel_over_ideal_median`: median over those scenarios of the last trial's travel time / (route
+  length / its speed setpoint): how near the requested speed learning got (a trial 1 already at it leaves
+  no travel-time gain to make; a scheduled trial's setpoint is its schedule's mean speed, so there the
+  ratio also holds the schedule's own slow stretches);
+- `outside_3sigma_median`, `outside_3sigma_max`, `outside_3sigma_over_1pct`: over trials of laws with a
+  predicted spread, the share of steps whose truth at 1 s left the predicted 3 sigma (summary.json's
+  `outside_3sigma_fraction`), and the trials above 1 %;
 - `self_stops`: trials that ended because the controller stopped itself, with its reason;
   `other_stops`: trials that did not complete for another reason (time limit, ...);
   `failed_scenarios`: runs that exited with an error, with its last console line;
@@ -93,14 +100,22 @@ class TrialResult:
     travel_time_s: float
     constraint_violations: int
     end_reason: str
+    ideal_travel_s: float | None = None     # route length / the trial's speed setpoint (its mean if scheduled)
+    outside_3sigma: float | None = None     # outside_3sigma_fraction (laws with a predicted spread)
 
     @classmethod
     def from_summary(cls, entry: dict) -> "TrialResult":
+        # end_reason, route_length_m, speed_setpoint_mps, outside_3sigma_fraction are summary.json's
+        # extensions: older summaries lack them
+        length, speed, outside = (entry.get(k) for k in ("route_length_m", "speed_setpoint_mps",
+                                                           "outside_3sigma_fraction"))
         return cls(trial=int(entry["trial"]), completed=bool(entry["completed"]),
                    max_lateral_m=float(entry["max_lateral_m"]), max_heading_rad=float(entry["max_heading_rad"]),
                    travel_time_s=float(entry["travel_time_s"]),
                    constraint_violations=int(entry["constraint_violations"]),
-                   end_reason=str(entry.get("end_reason", "")))   # an extension: older summaries lack it
+                   end_reason=str(entry.get("end_reason", "")),
+                   ideal_travel_s=float(length) / float(speed) if length and speed and speed > 0 else None,
+                   outside_3sigma=None if outside is None else float(outside))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -135,6 +150,8 @@ class ScenarioResult:
     learning_gain: float | None       # 1 - max lateral of the last trial / of trial 1
     travel_time_gain: float | None    # 1 - travel time of the last trial / of trial 1
     error: str
+    travel_over_ideal: float | None = None   # travel time of the last trial / route length at its setpoint
+    outside_3sigma_max: float | None = None  # the largest outside_3sigma_fraction of its trials
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -149,6 +166,10 @@ class FamilyStats:
     self_stops: list[Stop]
     trials_planned: int
     gain_scenarios: int
+    travel_over_ideal_median: float | None = None
+    outside_3sigma_median: float | None = None    # over trials
+    outside_3sigma_max: float | None = None
+    outside_3sigma_over_1pct: int = 0             # trials with more than 1 % outside (issue 18's target)
     other_stops: list[Stop] = field(default_factory=list)
     failed_scenarios: list[Failure] = field(default_factory=list)
     scenarios: list[ScenarioResult] = field(default_factory=list)
@@ -282,12 +303,20 @@ def scenario_result(o: RunOutcome) -> ScenarioResult:
         worst_excursion_ratio=round(max(_excursion(o.job, t) for t in o.trials), 4) if o.trials else None,
         learning_gain=_gain(first.max_lateral_m, last.max_lateral_m) if both else None,
         travel_time_gain=_gain(first.travel_time_s, last.travel_time_s) if both else None,
-        error=o.error)
+        error=o.error,
+        travel_over_ideal=round(last.travel_time_s / last.ideal_travel_s, 4)
+        if both and last.ideal_travel_s else None,
+        outside_3sigma_max=_max([t.outside_3sigma for t in o.trials]))
 
 
 def _median(values: list[float | None]) -> float | None:
     known = [v for v in values if v is not None]
     return round(statistics.median(known), 4) if known else None
+
+
+def _max(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return round(max(known), 4) if known else None
 
 
 def _stops(outcomes: Sequence[RunOutcome], own: bool) -> list[Stop]:
@@ -300,6 +329,7 @@ def family_stats(outcomes: Sequence[RunOutcome]) -> FamilyStats:
     per = [scenario_result(o) for o in outcomes]
     planned = sum(o.job.planned_trials for o in outcomes)
     excursions = [s.worst_excursion_ratio for s in per if s.worst_excursion_ratio is not None]
+    outside = [t.outside_3sigma for o in outcomes for t in o.trials]
     return FamilyStats(
         trials=sum(s.trials for s in per),
         completion_rate=round(sum(s.completed for s in per) / planned, 4) if planned else None,
@@ -309,6 +339,9 @@ def family_stats(outcomes: Sequence[RunOutcome]) -> FamilyStats:
         travel_time_gain_median=_median([s.travel_time_gain for s in per]),
         self_stops=_stops(outcomes, own=True), trials_planned=planned,
         gain_scenarios=sum(s.learning_gain is not None for s in per),
+        travel_over_ideal_median=_median([s.travel_over_ideal for s in per]),
+        outside_3sigma_median=_median(outside), outside_3sigma_max=_max(outside),
+        outside_3sigma_over_1pct=sum(v > 0.01 for v in outside if v is not None),
         other_stops=_stops(outcomes, own=False),
         failed_scenarios=[Failure(scenario=o.job.name, reason=o.error) for o in outcomes if o.error],
         scenarios=per)

@@ -213,6 +213,32 @@ def test_figures_from_hand_made_summaries(tmp_path):
     assert result["sim_speedup"] == pytest.approx(travel / 100.0, abs=1e-3)
 
 
+def test_travel_against_the_requested_speed_and_calibration_figures(tmp_path):
+    """Extensions read from summary.json's own extensions: route length over the setpoint, and the
+    share of predictions outside 3 sigma per trial."""
+    def run(name, trials):
+        job = _job(tmp_path, name, family="rc-lb-nmpc", planned=len(trials))
+        job.run_dir.mkdir()
+        entries = [{"trial": k, "completed": True, "max_lateral_m": 0.1, "max_heading_rad": 0.05,
+                    "travel_time_s": travel, "constraint_violations": 0, "end_reason": "end of route",
+                    "route_length_m": 100.0, "speed_setpoint_mps": 2.0, "outside_3sigma_fraction": out}
+                   for k, (travel, out) in enumerate(trials, start=1)]
+        (job.run_dir / "summary.json").write_text(json.dumps({"trials": entries}))
+        return scenarios.read_outcome(job, 0, 10.0)
+    # ideal 50 s: last trials 55 s (1.1) and 75 s (1.5), median 1.3; outside: 0.004, 0.02, 0.0, 0.012, None
+    outcomes = [run("a", [(80.0, 0.004), (55.0, 0.02)]), run("b", [(90.0, 0.0), (80.0, 0.012), (75.0, None)])]
+    rc = scenarios.bench_result(outcomes, n=2, seed=1, wall_s=10.0)["rc-lb-nmpc"]
+    assert [s["travel_over_ideal"] for s in rc["scenarios"]] == [pytest.approx(1.1), pytest.approx(1.5)]
+    assert rc["travel_over_ideal_median"] == pytest.approx(1.3)
+    assert rc["outside_3sigma_median"] == pytest.approx(0.008) and rc["outside_3sigma_max"] == pytest.approx(0.02)
+    assert rc["outside_3sigma_over_1pct"] == 2
+    assert [s["outside_3sigma_max"] for s in rc["scenarios"]] == [pytest.approx(0.02), pytest.approx(0.012)]
+    (tmp_path / "old").mkdir()
+    lb = scenarios.bench_result(_hand_made(tmp_path / "old"), n=7, seed=3, wall_s=100.0)["lb-nmpc"]
+    assert lb["travel_over_ideal_median"] is None and lb["outside_3sigma_max"] is None   # older summaries
+    assert lb["outside_3sigma_over_1pct"] == 0
+
+
 # --- end to end ---------------------------------------------------------------------------------------
 @pytest.mark.integration
 @pytest.mark.slow
