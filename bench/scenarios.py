@@ -33,6 +33,8 @@ Figures per family, from each run's summary.json (trial k of a run: its k-th ent
   `failed_scenarios`: runs that exited with an error, with its last console line;
 - `scenarios`: the same per scenario; lb-nmpc adds `learning_off`, these figures for its
   learning-off runs, and lb-nmpc-scheduled `guard_off`, for its runs under the plain thesis rule.
+`--family NAME` (repeatable) runs only the draws of those families, scenario i being the same draw as
+without it; the JSON lists them under `families` (null: all) and the others' figures are empty.
 `sim_speedup` = simulated seconds of all repeat trials (summary.json travel_time_s; teach passes and
 fits not counted) / wall seconds of the whole benchmark (`--jobs` runs at a time).
 The last stdout line is the JSON object. Ctrl-C (or SIGTERM) stops every run cleanly, services
@@ -183,10 +185,14 @@ def _twin(table: dict, twin: str) -> dict:
     return {**table, "name": table["name"] + "-thesisrule", "scheduler": {**table["scheduler"], "guard": False}}
 
 
-def scenario_tables(n: int, seed: int, bounds: Bounds = BOUNDS, trials: int | None = None) -> list[tuple[int, str, dict]]:
-    """(index, twin, scenario table) of every run: the N draws, each followed by its family's twins."""
+def scenario_tables(n: int, seed: int, bounds: Bounds = BOUNDS, trials: int | None = None,
+                    families: Sequence[str] | None = None) -> list[tuple[int, str, dict]]:
+    """(index, twin, scenario table) of every run: the N draws, each followed by its family's twins;
+    with `families`, only the draws of those (scenario i stays the same draw)."""
     out = []
     for index in range(n):
+        if families and family_of(index).name not in families:
+            continue
         table = draw(np.random.default_rng([seed, index]), index, bounds)
         if trials is not None:
             table["trials"]["count"] = trials
@@ -385,13 +391,15 @@ def run_bench(args: argparse.Namespace) -> dict:
     with where as out_name:
         out = FsPath(out_name)
         out.mkdir(parents=True, exist_ok=True)
-        jobs = write_jobs(scenario_tables(args.n, args.seed, bounds, args.trials), out, args.seed)
+        jobs = write_jobs(scenario_tables(args.n, args.seed, bounds, args.trials, args.family), out, args.seed)
         _say(f"bench scenarios: {args.n} scenarios, {len(jobs)} runs, {args.jobs} at a time, in {out}"
+             + (f" (only {', '.join(args.family)})" if args.family else "")
              + (f" (overrides {overrides}: not the benchmark's figures)" if overrides else ""))
         t0 = time.monotonic()
         outcomes = Runner(args.jobs, lambda o, done, total: _say(progress_line(o, done, total))).run(jobs)
         result = bench_result(outcomes, args.n, args.seed, time.monotonic() - t0)
-        result.update({"jobs": args.jobs, "out": str(out) if args.out else None, "overrides": overrides or None})
+        result.update({"jobs": args.jobs, "out": str(out) if args.out else None, "overrides": overrides or None,
+                       "families": list(args.family) if args.family else None})
         if args.out:
             (out / "bench.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
@@ -405,6 +413,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, metavar="DIR", help="keep scenario files and runs here (new or empty)")
     parser.add_argument("--jobs", type=int, default=1, help="runs at a time (default 1)")
+    parser.add_argument("--family", action="append", choices=[f.name for f in FAMILIES], default=None,
+                        help="run only the draws of this family (repeatable); the others' figures stay empty")
     parser.add_argument("--trials", type=int, default=None, help="smoke tests only: every run has this many trials")
     parser.add_argument("--route-m", type=float, nargs=2, default=None, metavar=("MIN", "MAX"),
                         help="smoke tests only: route lengths in this range")

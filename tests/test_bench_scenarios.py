@@ -43,6 +43,10 @@ def test_draw_is_deterministic_for_a_seed_and_independent_of_n():
     assert rule == {**sched, "name": sched["name"] + "-thesisrule", "scheduler": {**sched["scheduler"], "guard": False}}
     assert parse_scenario(rule).scheduler.guard is False and parse_scenario(sched).scheduler.guard is True
     assert [t[1] for t in few[4:]] == [""]                    # scenario 2: rc-lb-nmpc, no twin
+    # --family keeps the draws of those families only, each the same draw as without it
+    only = scenarios.scenario_tables(6, 5, families=["lb-nmpc-scheduled", "rc-lb-nmpc"])
+    assert [(i, twin) for i, twin, _ in only] == [(1, ""), (1, "guard_off"), (2, ""), (5, ""), (5, "guard_off")]
+    assert only == [t for t in more if t[0] in (1, 2, 5)]
 
 
 def test_families_and_presets_take_turns():

@@ -147,7 +147,7 @@ def test_the_database_keeps_schedules_as_messages_and_loads_bodies_written_as_di
     db.close()
 
 
-# --- the guard (services/scheduler/core.py, module doc G1-G3), worked by hand -----------------------------
+# --- the guard (services/scheduler/core.py, module doc G1-G4), worked by hand -----------------------------
 from services.scheduler.core import (GuardCaps, apply_guard, growth_cap, guard_caps, guard_limits,  # noqa: E402
                                      neighbourhoods, plan, worst_nearby)
 
@@ -274,10 +274,32 @@ def test_with_the_guard_off_plan_is_the_thesis_rule():
     assert prop.schedule[12] == pytest.approx(0.26) and prop.schedule[10] == pytest.approx(0.7)
     # the guard on, bound min(1.0, 0.8 * 1.2) = 0.96 rad/s: within 3 m of the start and end segments (s <= 4,
     # s >= 6) the 0.9 rad/s passed at 0.4 m/s reach it at 0.96 * 0.4 / 0.9 = 0.427 m/s; within 3 m of
-    # vertex 12 its 0.3 m reach 0.8 * 0.15 = 0.12 m at 0.2 m/s: every increase is kept at its speed
+    # vertex 12 its 0.3 m reach 0.8 * 0.15 = 0.12 m at 0.2 m/s; both caps lie below v_init 0.5, which is
+    # their floor (G4): every increase is kept at its speed
     guarded = plan(first.schedule, pa, [(first.schedule, pa)], s, xy, SchedulerParams(**{**p.__dict__, "guard": True}))
     np.testing.assert_allclose(guarded.schedule, np.where(np.arange(n) == 12, 0.26, first.schedule))
-    assert guarded.caps.v_cap[4] == pytest.approx(0.96 * 0.4 / 0.9) and guarded.caps.v_cap[10] == pytest.approx(0.2)
+    assert guarded.caps.v_cap[4] == pytest.approx(0.5) and guarded.caps.v_cap[10] == pytest.approx(0.5)
+    assert guarded.caps.by[4] == 2 and guarded.caps.by[10] == 0
+
+
+def test_a_vertex_lowered_to_a_crawl_rises_again_as_under_the_thesis_rule():
+    """Seed 6143's Husky on a 14.7 deg side slope: eq. 4.2 lowered vertices to 0.05 m/s, where the
+    lateral error was 0.10 m (lambda_L 0.15: met, so eq. 4.2 raises them to 0.25). Proportional growth from
+    0.05 m/s would cap them at 0.12 * 0.05 / 0.10 = 0.06 and hold them at the crawl for good (those runs:
+    lateral errors 0.14-0.38 m at the crawl, 175 steps beyond the limit). G4: the pass counts as at 0.5
+    (v_init): cap max(0.5, 0.12 * 0.5 / 0.10) = 0.6, and the thesis rule's 0.25 stands. A pass at 0.6 m/s
+    with the same 0.10 m is still capped at 0.12 * 0.6 / 0.10 = 0.72 < 0.8."""
+    n = 11
+    s, xy = straight(n)
+    prev = np.full(n, 0.05)
+    crawl = passes_v([0.10] * n, [1.0] * n, [0.05] * n, prev)
+    out = plan(prev, crawl, [(prev, crawl)], s, xy, no_limits(lambda_L=0.15, w_max=1.2))
+    np.testing.assert_allclose(out.schedule, 0.25)
+    np.testing.assert_allclose(out.caps.v_cap, 0.6)
+    fast = np.full(n, 0.6)
+    at_speed = passes_v([0.10] * n, [1.0] * n, [0.05] * n, fast)
+    np.testing.assert_allclose(plan(fast, at_speed, [(fast, at_speed)], s, xy,
+                                    no_limits(lambda_L=0.15, w_max=1.2)).schedule, 0.72)
 
 
 def test_the_guard_reads_the_latest_trials_of_the_history():

@@ -44,6 +44,12 @@ lowers a speed: decreases stay eq. 4.2's). For each criterion c (|e_L|, |e_H| of
        predicted peak (eq. 4.2 alone never sees a saturated turn rate exceed a lambda_omega set at or
        above w_max); then v_sugg,i <- max(v_sched,i, min(v_sugg,i, v_cap,i)) for the increased
        vertices, before eq. 4.3-4.4.
+  (G4) no cap lies below v_init, the speed trial 1 ran at, and for the two tracking errors no growth is
+       modelled below it (their pass speeds count as at least v_init in G1-G2). Errors from disturbances
+       that act per second (slip down a side slope) grow as the robot slows, so proportional growth
+       extrapolated from a pass at a crawl (a vertex eq. 4.2 lowered to 0.05 m/s) would hold it at that
+       crawl, and at its larger errors, for good; below v_init the speeds are eq. 4.2's alone. The turn
+       rate keeps its real pass speeds: omega = v kappa is proportional at any speed.
 
 The learned model's variance at the new speed bin (thesis 5.3.2, 7.2) would be a third prediction, but
 it lives in the store and describes the disturbance, not the errors and turn rates the controller will
@@ -275,7 +281,7 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     return next_schedule(prev, passes, s, xy, p, failed, caps)
 
 
-# --- the guard (module doc, G1-G3) ----------------------------------------------------------------------
+# --- the guard (module doc, G1-G4) ----------------------------------------------------------------------
 CRITERIA = ("lateral error", "heading error", "turn rate")
 
 
@@ -341,19 +347,20 @@ def growth_cap(V: np.ndarray, E: np.ndarray, allowed: float, min_spread: float) 
 
 
 def guard_caps(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray, p: SchedulerParams) -> GuardCaps:
-    """G1-G3 over the latest guard_trials trials of `history` (each trial's schedule and passes, oldest
+    """G1-G4 over the latest guard_trials trials of `history` (each trial's schedule and passes, oldest
     first)."""
     recent = history[-p.guard_trials:]
     lo, hi = neighbourhoods(s, p.guard_radius_m)
     allowed = guard_limits(p)
     caps = np.full((len(CRITERIA), len(s)), np.inf)
     for c in range(len(CRITERIA)):
-        worst = [worst_nearby((pa.e_lat_m, pa.e_head_rad, pa.w_cmd_radps)[c], pass_speeds(sched, pa), lo, hi)
-                 for sched, pa in recent]
+        floor = p.v_init if CRITERIA[c] != "turn rate" else 0.0      # G4
+        worst = [worst_nearby((pa.e_lat_m, pa.e_head_rad, pa.w_cmd_radps)[c],
+                              np.maximum(pass_speeds(sched, pa), floor), lo, hi) for sched, pa in recent]
         E, V = np.array([w[0] for w in worst]), np.array([w[1] for w in worst])
         caps[c] = growth_cap(V, E, float(allowed[c]), p.gamma1 / 2)
     v_cap = caps.min(axis=0)
-    return GuardCaps(v_cap, np.where(np.isfinite(v_cap), np.argmin(caps, axis=0), -1))
+    return GuardCaps(np.maximum(v_cap, p.v_init), np.where(np.isfinite(v_cap), np.argmin(caps, axis=0), -1))
 
 
 def apply_guard(sugg: np.ndarray, prev: np.ndarray, decisions: np.ndarray,
