@@ -41,6 +41,15 @@ Drawn, in this order, uniformly unless said otherwise:
 - speed (v_max: the preset's limit): lb-nmpc and ilc a fixed [0.3, 0.8] v_max; rc-lb-nmpc a fixed
   [0.7, 1.0] v_max; lb-nmpc-scheduled the scheduler's ceiling `v_max` in [0.6, 1.0] v_max (its other
   settings at their defaults, so trial 1 runs at the default v_init).
+- robot body (only with `robots = "perturbed"`, `--robots perturbed`: a user's own robot rather than a
+  thesis robot; drawn from its own stream `default_rng([seed, index, 1])`, so everything above stays
+  the same draw): each physical parameter the controller is not told, as overrides of the preset:
+  drive lags `tau_v_s`, `tau_w_s` (and `tau_steer_s`) x [0.5, 2]; `accel_max_mps2`,
+  `yaw_accel_max_radps2` (and `steer_rate_max_dps`) x [0.6, 1.5]; `turn_efficiency` x [0.8, 1.1]
+  (at most 1), `turn_loss_per_mps2`, `side_slip_s`, `slope_slide_mps`, `slope_yaw_radps` (and
+  `understeer_s2pm2`) x [0.5, 2]; the non-repeatable noise `noise_v_mps`, `noise_w_radps` x [0.5, 2];
+  log-uniform factors. The command limits (speed, turn rate, steering angle) stay the preset's, so the
+  requested speeds mean the same.
 Every controller, scheduler and store setting not named here keeps its default (no per-scenario
 tuning: actuator lags and prior model uncertainties included). Lengths are rounded to 1 cm, speeds
 to 1 cm/s, everything else to 4 decimals.
@@ -115,6 +124,17 @@ BOUNDS = Bounds()
 MAX_ATTEMPTS = 10_000   # a route draw that fails this often means the bounds admit no route
 
 
+# a user's own robot (module docstring): the preset's hidden physics scaled by log-uniform factors
+BODY_FACTORS: dict[str, tuple[float, float]] = {
+    "tau_v_s": (0.5, 2.0), "tau_w_s": (0.5, 2.0), "tau_steer_s": (0.5, 2.0),
+    "accel_max_mps2": (0.6, 1.5), "yaw_accel_max_radps2": (0.6, 1.5), "steer_rate_max_dps": (0.6, 1.5),
+    "turn_efficiency": (0.8, 1.1), "turn_loss_per_mps2": (0.5, 2.0), "side_slip_s": (0.5, 2.0),
+    "slope_slide_mps": (0.5, 2.0), "slope_yaw_radps": (0.5, 2.0), "understeer_s2pm2": (0.5, 2.0),
+    "noise_v_mps": (0.5, 2.0), "noise_w_radps": (0.5, 2.0),
+}
+ROBOTS = ("presets", "perturbed")
+
+
 def family_of(index: int) -> Family:
     return FAMILIES[index % len(FAMILIES)]
 
@@ -135,8 +155,10 @@ def route_length(waypoints, corner_radius_m: float, loop: bool) -> float:
     return float(np.sum(np.hypot(*np.diff(ref[:, :2], axis=0).T)))
 
 
-def draw(rng: np.random.Generator, index: int, bounds: Bounds = BOUNDS) -> dict:
-    """Scenario `index` of the benchmark (a table for `parse_scenario`), drawn from `rng`."""
+def draw(rng: np.random.Generator, index: int, bounds: Bounds = BOUNDS,
+         body_rng: np.random.Generator | None = None) -> dict:
+    """Scenario `index` of the benchmark (a table for `parse_scenario`), drawn from `rng`; with
+    `body_rng`, the robot's physics are perturbed from its preset's (`perturbed_body`)."""
     family, preset = family_of(index), preset_of(index)
     robot = PRESETS[preset]
     seed = int(rng.integers(0, 2**31))
@@ -146,7 +168,7 @@ def draw(rng: np.random.Generator, index: int, bounds: Bounds = BOUNDS) -> dict:
     scenario = {
         "name": f"s{seed}-{index:04d}-{family.name}-{preset}",
         "seed": seed,
-        "robot": {"preset": preset},
+        "robot": {"preset": preset, **(perturbed_body(body_rng, robot) if body_rng is not None else {})},
         "path": {"waypoints": waypoints, "loop": loop, "teach_speed_mps": round(teach, 2),
                  "corner_radius_m": radius},
         "terrain": draw_terrain(rng, ref, bounds),
@@ -163,6 +185,18 @@ def draw(rng: np.random.Generator, index: int, bounds: Bounds = BOUNDS) -> dict:
     else:
         scenario["trials"] = {"count": family.trials, "speed": speed}
     return scenario
+
+
+def perturbed_body(rng: np.random.Generator, robot: RobotParams) -> dict:
+    """Overrides of `robot`'s hidden physics (BODY_FACTORS); parameters the preset leaves at 0 (a
+    skid-steer robot's steering) stay 0."""
+    out = {}
+    for name, (lo, hi) in BODY_FACTORS.items():
+        factor = math.exp(rng.uniform(math.log(lo), math.log(hi)))
+        value = getattr(robot, name)
+        if value > 0:
+            out[name] = _r4(min(1.0, value * factor) if name == "turn_efficiency" else value * factor)
+    return out
 
 
 def _r4(x: float) -> float:

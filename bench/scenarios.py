@@ -35,6 +35,9 @@ Figures per family, from each run's summary.json (trial k of a run: its k-th ent
   learning-off runs, and lb-nmpc-scheduled `guard_off`, for its runs under the plain thesis rule.
 `--family NAME` (repeatable) runs only the draws of those families, scenario i being the same draw as
 without it; the JSON lists them under `families` (null: all) and the others' figures are empty.
+`--robots perturbed` draws each robot's hidden physics (lags, acceleration limits, slip, slope response,
+noise) around its preset, the rest of every draw unchanged: robots nobody tuned for; the JSON says
+which under `robots` ("presets" or "perturbed").
 `sim_speedup` = simulated seconds of all repeat trials (summary.json travel_time_s; teach passes and
 fits not counted) / wall seconds of the whole benchmark (`--jobs` runs at a time).
 The last stdout line is the JSON object. Ctrl-C (or SIGTERM) stops every run cleanly, services
@@ -64,7 +67,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from bench.report import run_and_print
-from bench.scenario_draw import BOUNDS, FAMILIES, Bounds, draw, family_of
+from bench.scenario_draw import BOUNDS, FAMILIES, ROBOTS, Bounds, draw, family_of
 from common.config import dump_toml
 from common.lifecycle import PARENT_ENV
 from common.scenario import parse_scenario
@@ -186,14 +189,18 @@ def _twin(table: dict, twin: str) -> dict:
 
 
 def scenario_tables(n: int, seed: int, bounds: Bounds = BOUNDS, trials: int | None = None,
-                    families: Sequence[str] | None = None) -> list[tuple[int, str, dict]]:
+                    families: Sequence[str] | None = None, robots: str = "presets") -> list[tuple[int, str, dict]]:
     """(index, twin, scenario table) of every run: the N draws, each followed by its family's twins;
-    with `families`, only the draws of those (scenario i stays the same draw)."""
+    with `families`, only the draws of those (scenario i stays the same draw); `robots` "perturbed":
+    each robot's physics drawn around its preset (scenario_draw.perturbed_body)."""
+    if robots not in ROBOTS:
+        raise ValueError(f"robots: {robots!r} is not one of {ROBOTS}")
     out = []
     for index in range(n):
         if families and family_of(index).name not in families:
             continue
-        table = draw(np.random.default_rng([seed, index]), index, bounds)
+        body = np.random.default_rng([seed, index, 1]) if robots == "perturbed" else None
+        table = draw(np.random.default_rng([seed, index]), index, bounds, body)
         if trials is not None:
             table["trials"]["count"] = trials
         out.append((index, "", table))
@@ -391,15 +398,17 @@ def run_bench(args: argparse.Namespace) -> dict:
     with where as out_name:
         out = FsPath(out_name)
         out.mkdir(parents=True, exist_ok=True)
-        jobs = write_jobs(scenario_tables(args.n, args.seed, bounds, args.trials, args.family), out, args.seed)
+        jobs = write_jobs(scenario_tables(args.n, args.seed, bounds, args.trials, args.family, args.robots),
+                          out, args.seed)
         _say(f"bench scenarios: {args.n} scenarios, {len(jobs)} runs, {args.jobs} at a time, in {out}"
              + (f" (only {', '.join(args.family)})" if args.family else "")
+             + (" (robots perturbed from their presets)" if args.robots == "perturbed" else "")
              + (f" (overrides {overrides}: not the benchmark's figures)" if overrides else ""))
         t0 = time.monotonic()
         outcomes = Runner(args.jobs, lambda o, done, total: _say(progress_line(o, done, total))).run(jobs)
         result = bench_result(outcomes, args.n, args.seed, time.monotonic() - t0)
         result.update({"jobs": args.jobs, "out": str(out) if args.out else None, "overrides": overrides or None,
-                       "families": list(args.family) if args.family else None})
+                       "families": list(args.family) if args.family else None, "robots": args.robots})
         if args.out:
             (out / "bench.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
@@ -415,6 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=1, help="runs at a time (default 1)")
     parser.add_argument("--family", action="append", choices=[f.name for f in FAMILIES], default=None,
                         help="run only the draws of this family (repeatable); the others' figures stay empty")
+    parser.add_argument("--robots", choices=ROBOTS, default="presets",
+                        help="perturbed: each robot's hidden physics drawn around its preset (a user's own robot)")
     parser.add_argument("--trials", type=int, default=None, help="smoke tests only: every run has this many trials")
     parser.add_argument("--route-m", type=float, nargs=2, default=None, metavar=("MIN", "MAX"),
                         help="smoke tests only: route lengths in this range")

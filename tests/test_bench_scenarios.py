@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from bench import scenarios
-from bench.scenario_draw import FAMILIES, draw
+from bench.scenario_draw import BODY_FACTORS, FAMILIES, draw
 from common.robot import PRESETS
 from common.scenario import load_scenario, parse_scenario
 from deploy.experiment import check_supported
@@ -47,6 +47,29 @@ def test_draw_is_deterministic_for_a_seed_and_independent_of_n():
     only = scenarios.scenario_tables(6, 5, families=["lb-nmpc-scheduled", "rc-lb-nmpc"])
     assert [(i, twin) for i, twin, _ in only] == [(1, ""), (1, "guard_off"), (2, ""), (5, ""), (5, "guard_off")]
     assert only == [t for t in more if t[0] in (1, 2, 5)]
+
+
+def test_perturbed_robots_change_only_the_hidden_physics_within_their_factors():
+    """--robots perturbed: the same draws (route, terrain, speeds, limits) on robots around the presets."""
+    plain = scenarios.scenario_tables(8, 77)
+    own = scenarios.scenario_tables(8, 77, robots="perturbed")
+    assert own == scenarios.scenario_tables(8, 77, robots="perturbed")
+    assert [(i, twin) for i, twin, _ in own] == [(i, twin) for i, twin, _ in plain]
+    for (_, _, a), (_, _, b) in zip(plain, own):
+        assert {k: v for k, v in a.items() if k != "robot"} == {k: v for k, v in b.items() if k != "robot"}
+        preset = PRESETS[a["robot"]["preset"]]
+        overrides = {k: v for k, v in b["robot"].items() if k != "preset"}
+        assert overrides and set(overrides) <= set(BODY_FACTORS)
+        for name, value in overrides.items():
+            lo, hi = BODY_FACTORS[name]
+            ratio = value / getattr(preset, name)
+            assert lo - 1e-3 <= ratio <= hi + 1e-3 or (name == "turn_efficiency" and value == 1.0), name
+        params = parse_scenario(b).robot.params
+        assert (params.v_max_mps, params.w_max_radps, params.steer_max_deg) == \
+            (preset.v_max_mps, preset.w_max_radps, preset.steer_max_deg)
+        assert params.tau_v_s != preset.tau_v_s and (preset.drive == "ackermann") == (params.tau_steer_s > 0)
+    with pytest.raises(ValueError, match="robots"):
+        scenarios.scenario_tables(1, 77, robots="custom")
 
 
 def test_families_and_presets_take_turns():
