@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from bench.closed_loop import ClosedLoop, truth_of
+from common.robot import RobotParams, robot_from_preset
 from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
 from services.controller.actuator import ActuatorLag
@@ -50,7 +51,7 @@ def test_a_channel_whose_command_never_changes_is_not_identified():
     assert any("hardly changed" in n for n in drive.notes)
 
 
-def teach(preset: str, speed: float, seed: int = 1):
+def teach(preset: str | RobotParams, speed: float, seed: int = 1):
     """The built-in teach driver's pass on the simulator, recorded as the controller records it."""
     cl = ClosedLoop(ROUTE, [SLOPE], preset=preset, seed=seed, teach_speed=speed, loc=PoseSourceSettings())
     drv = PurePursuitDriver(cl.ref, speed, cl.robot.max_curvature, cl.robot.w_max_radps)
@@ -67,19 +68,25 @@ def teach(preset: str, speed: float, seed: int = 1):
     return rec, cl.source.finish_teach("route", loop=False, taught_by="test"), cl.robot
 
 
-@pytest.mark.parametrize("preset, speed", [("roc6", 0.5), ("grizzly", 0.8), ("mats", 0.8)])
-def test_the_teach_pass_identifies_the_simulated_drive(preset, speed):
+@pytest.mark.parametrize("preset, overrides, speed", [
+    ("roc6", {}, 0.5), ("grizzly", {}, 0.8), ("mats", {}, 0.8),
+    # robots around the presets (bench scenarios --robots perturbed) whose speed lag the one-step
+    # (equation-error) fit misread: as a dead time with a slow ramp, or as twice the lag
+    ("mats", {"tau_v_s": 0.65, "accel_max_mps2": 0.91}, 0.76),
+    ("mats", {"tau_v_s": 0.326, "accel_max_mps2": 0.442}, 1.0),
+    ("grizzly", {"tau_v_s": 0.505, "accel_max_mps2": 0.919, "tau_w_s": 0.46}, 0.9)])
+def test_the_teach_pass_identifies_the_simulated_drive(preset, overrides, speed):
     """The simulator's drives are first-order lags with acceleration limits, without dead time, gain 1
     (common/robot.py). Teach holds one speed nearly all along, so the speed channel's lag is seen only
-    at the start and the stop, mostly as a ramp at the acceleration limit: it comes out within a quarter;
-    the turn rate's (an Ackermann's: its steering actuator's, tau_steer_s) closely."""
-    rec, path, robot = teach(preset, speed)
+    at the start and the stop; its response to the commands (the output error) still gives it within
+    5 %, and the turn rate's (an Ackermann's: its steering actuator's, tau_steer_s) closely."""
+    rec, path, robot = teach(robot_from_preset(preset, overrides), speed)
     m = identify(rec, path, "r1", 0.0)
     tau_w = robot.tau_steer_s if robot.drive == "ackermann" else robot.tau_w_s
     assert m.dead_time_v_s == 0.0 and m.dead_time_w_s == 0.0
     assert m.gain_v == pytest.approx(1.0, abs=0.02) and m.gain_w == pytest.approx(1.0, abs=0.02)
-    assert m.tau_v_s == pytest.approx(robot.tau_v_s, rel=0.25)
-    assert m.rate_limit_v_mps2 == pytest.approx(robot.accel_max_mps2, rel=0.1)
+    assert m.tau_v_s == pytest.approx(robot.tau_v_s, rel=0.05)
+    assert m.rate_limit_v_mps2 == pytest.approx(robot.accel_max_mps2, rel=0.05)
     assert m.tau_w_s == pytest.approx(tau_w, rel=0.1)
     assert m.actuator_tau_s == pytest.approx((m.tau_v_s, m.tau_w_s))
     assert m.model_tag == ActuatorLag(*m.actuator_tau_s, DT).model_tag and not m.notes
