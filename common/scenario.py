@@ -197,6 +197,7 @@ class TrialsSection:
     start_offset_m: float = 0.0       # lateral offset of the robot at the start of each repeat
     start_offset_deg: float = 0.0
     time_limit_factor: float = 3.0    # a trial is aborted after this many times its nominal time
+    #                                   (the route at the slower of the trial speed and the teach speed)
 
     def __post_init__(self):
         if self.count < 1:

@@ -339,12 +339,15 @@ class Experiment:
 
     def repeat(self, trial: int, speed: float) -> TrialRecord:
         path = self.path
-        nominal_s = path.length_m / max(speed, 1e-3)
+        # the nominal time is at no more than the teach speed: a controller that slows down while its
+        # model is uncertain (RC-LB-NMPC's first trial) is not stuck while it beats the teach pass/3
+        v_teach = self.sc.path.teach_speed_mps
+        nominal_s = path.length_m / max(min(speed, v_teach), 1e-3)
         sched = self.schedule(trial) if self.sc.scheduler.enabled else None
         self.scheduled = sched is not None
         if sched is not None:
-            v = np.asarray(sched.v_mps)
-            speed = float(v.mean())
+            v = np.minimum(np.asarray(sched.v_mps), v_teach)
+            speed = float(np.mean(sched.v_mps))
             nominal_s = float(np.sum(path.segment_lengths / np.maximum(v[:-1], 1e-3)))
         limit_s = self.sc.trials.time_limit_factor * nominal_s + 10.0
         rec = TrialRecord(trial=trial, speed_mps=speed)

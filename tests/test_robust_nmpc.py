@@ -476,7 +476,7 @@ def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c
     0.05 m / 10 deg corridor). C-LB-NMPC, constraining only the mean of an overconfident model, leaves
     the corridor in its first trial; RC-LB-NMPC slows down while uncertain, never leaves it, and its
     travel time falls by >= 30 % once experience has shrunk the uncertainty (with the prior identified
-    from the teach pass, seed 3: 114.0 -> 61.4 -> 48.2 s, 58 %; with the hand-set prior of earlier
+    from the teach pass, seed 3: 116.4 -> 63.2 -> 49.7 s, 57 %; with the hand-set prior of earlier
     versions 35-36 % over seeds 3, 5, 7, 11)."""
     base = example("rc-husky-indoor")
     rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
