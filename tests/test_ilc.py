@@ -1,5 +1,6 @@
 """Iterative Learning Control (thesis 3.2.2-3.2.3): the update law worked by hand, persistence, and
 learning in closed loop with the simulated robot."""
+import dataclasses
 import math
 
 import numpy as np
@@ -9,8 +10,11 @@ from bench.closed_loop import ClosedLoop
 from common.robot import PRESETS
 from common.scenario import TerrainPatch
 from services.controller.fl import FLGains, fl_angular_rate
+from services.bridge.teach_driver import smooth_waypoints
+from services.controller.actuator import ActuatorLag
 from services.controller.ilc import ILCGains, ILCLaw, ILCMemory
 from services.controller.ilc_lifted import ILCPlant, lifted_model, norm_optimal_change
+from services.controller.ilc_monitor import ILCBaseline, after_saturation, recovery_s
 from services.localizer.pose_source import PoseSourceSettings
 
 
@@ -202,3 +206,81 @@ def test_lifted_ilc_learns_where_the_thesis_law_does_not_on_a_lagging_heavy_robo
     assert lifted[-1] <= lifted[0] / 3.0, lifted
     thesis = lifted_trials("grizzly", route, terrain, 1.2, "thesis")
     assert thesis[-1] > 0.6 * thesis[0], thesis
+
+
+def test_errors_from_a_saturated_command_until_the_loop_recovers_are_left_out():
+    """after_saturation worked by hand: vertices 1 m apart passed at 2 m/s (0.5 s each), a 1.2 s
+    window from a saturation at vertex 3 covers vertices 3, 4 and 5 (at 1.0 s; 6 is at 1.5 s)."""
+    sat = np.zeros(10, dtype=bool)
+    sat[3] = True
+    got = after_saturation(sat, np.ones(9), np.full(10, 2.0), 1.2)
+    assert np.flatnonzero(got).tolist() == [3, 4, 5]
+    assert recovery_s(ILCPlant(FLGains(gamma1=1.0, gamma2=2.0), tau_w_s=0.3, delay_s=0.1)) == pytest.approx(4.4)
+
+
+def guarded_memory(n=40):
+    """A memory whose last accepted trial (the baseline) had a lateral error bump at vertices 10-15."""
+    e_lat = np.zeros(n)
+    e_lat[10:16] = 0.1
+    base = ILCBaseline(path_id="r", w_ff_radps=[0.0] * n, e_lat_m=e_lat.tolist(), e_head_rad=[0.0] * n,
+                       learn_from=[True] * n, speeds_mps=[1.0] * n, cost=float(np.mean(e_lat ** 2)), speed_mps=1.0)
+    return ILCMemory("r", n, w_ff=np.full(n, 0.05), trials=2, baseline=base), base
+
+
+def test_a_trial_that_got_worse_reverts_to_the_baseline_feedforward_with_half_the_step():
+    """The candidate feedforward (0.05 everywhere) drove a trial with twice the baseline's error: the
+    next feedforward is the baseline's (zero) plus half of the norm-optimal change computed from the
+    baseline's errors, exactly; a trial at another speed is not judged against it."""
+    mem, base = guarded_memory()
+    n, dist = len(mem.w_ff), np.ones(len(mem.w_ff) - 1)
+    for i in range(n):
+        mem.record(i, 0.2 if 10 <= i < 16 else 0.0, 0.0, v_mps=1.0)
+    plant = ILCPlant(FLGains(), tau_w_s=0.2)
+    up = mem.update(ILCGains(), plant, dist)
+    assert up.reverted and up.step_scale == 0.5 and up.baseline_cost == pytest.approx(base.cost)
+    ref = 0.5 * norm_optimal_change(np.zeros(n), np.asarray(base.e_lat_m), np.zeros(n), np.ones(n, dtype=bool),
+                                    lifted_model(dist, np.ones(n), plant), ILCGains().weights())
+    np.testing.assert_allclose(mem.w_ff, ref, atol=1e-12)
+    assert mem.baseline.w_ff_radps == base.w_ff_radps and mem.baseline.step_scale == 0.5
+
+    mem, base = guarded_memory()
+    for i in range(n):
+        mem.record(i, 0.2 if 10 <= i < 16 else 0.0, 0.0, v_mps=1.5)      # faster: a new baseline
+    assert not mem.update(ILCGains(), plant, dist).reverted
+    assert mem.baseline.speed_mps == pytest.approx(1.5) and mem.baseline.w_ff_radps == [0.05] * n
+
+
+def test_the_baseline_is_saved_beside_the_feedforward(tmp_path):
+    mem, base = guarded_memory()
+    mem.save(tmp_path)
+    back = ILCMemory.load(tmp_path, "r", len(mem.w_ff))
+    assert back.baseline == base and back.trials == 2
+    assert ILCMemory.load(tmp_path, "r", len(mem.w_ff)).w_ff.tolist() == mem.w_ff.tolist()
+
+
+def test_ilc_does_not_learn_what_a_saturated_steering_cannot_follow():
+    """A perturbed MATS (bench scenarios --seed 2718 --robots perturbed, scenario 3: speed lag 0.84 s,
+    steering 37 deg/s with a 0.3 s lag) at 1.92 m/s through a corner on rough ground, where the
+    feedback alone leaves the route by 0.77 m with the command 2.8x beyond the curvature limit. The
+    update that learned from those errors took trial 2 to 2.1 m; leaving out the saturated stretches
+    and reverting a trial that got worse keeps every trial within 1.6x of the first (measured 0.77,
+    0.67, 1.14, 0.68 m)."""
+    robot = dataclasses.replace(PRESETS["mats"], tau_v_s=0.841, tau_w_s=0.281, tau_steer_s=0.297, accel_max_mps2=0.619,
+                                yaw_accel_max_radps2=1.601, steer_rate_max_dps=36.931, turn_efficiency=0.835,
+                                side_slip_s=0.025, slope_slide_mps=0.188, slope_yaw_radps=0.316,
+                                understeer_s2pm2=0.066, noise_v_mps=0.033, noise_w_radps=0.008)
+    terrain = [TerrainPatch(kind="rough", center=(24.85, -37.33), radius_m=6.415, amplitude=0.182),
+               TerrainPatch(kind="slip", center=(26.37, -20.77), radius_m=4.974, traction=0.545)]
+    waypoints = [[0.0, 0.0], [19.08, 0.0], [27.75, -37.32], [16.72, -47.5], [-24.41, -22.41]]
+    sim = ClosedLoop(waypoints, terrain, preset=robot, seed=943581406, teach_speed=0.95,
+                     loc=PoseSourceSettings(noise_m=0.027, delay_ticks=1))
+    sim.ref = smooth_waypoints(waypoints, 7.12, False)
+    path = sim.teach()
+    gains, mem, out = ILCGains(), ILCMemory("route", len(path)), []
+    lag = ActuatorLag(0.0, 0.29, 0.1, 0.339)
+    for t in range(1, 5):
+        r = sim.repeat(t, 1.92, law=ILCLaw(FLGains(), mem), ic_vertices=gains.ic_vertices, lag=lag)
+        out.append(r.max_lateral)
+        up = mem.update(gains, ILCPlant(FLGains(), tau_w_s=0.29, delay_s=mem.mean_age_s), np.diff(path.s))
+        assert up.saturated_vertices > 0
+    assert max(out[1:]) < 1.6 * out[0], out

@@ -10,11 +10,13 @@ lookahead errors of eq. 3.15 updates the sequence:
 
 (Signs in this project's convention, see fl.py: e_L is left of the route, e_H counter-clockwise of it,
 so a robot left of the route needs a negative, rightward, correction.) The sequence is saved per route
-(one file, codec-versioned) and loaded at the next trial, so learning survives restarts.
+(one file, codec-versioned) and loaded at the next trial, so learning survives restarts. The lifted
+update leaves out errors of saturated stretches and reverts a feedforward whose trial got worse
+(ilc_monitor.py); its baseline is saved beside the feedforward.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path as FsPath
 from typing import ClassVar, Literal
 
@@ -24,7 +26,10 @@ from common.atomic_file import write_atomically
 from common.codec import Message, decode, encode
 from common.messages import check_name
 from services.controller.fl import FLGains, fl_angular_rate
-from services.controller.ilc_lifted import ILCPlant, LiftedWeights, lifted_model, mean_speeds, norm_optimal_change
+from services.controller.ilc_lifted import (MIN_SPEED_MPS, ILCPlant, LiftedWeights, lifted_model, mean_speeds,
+                                            norm_optimal_change)
+from services.controller.ilc_monitor import (MIN_STEP_SCALE, ILCBaseline, after_saturation, recovery_s,
+                                             trial_cost)
 from services.controller.laws import LawResult, StepContext
 
 
@@ -42,14 +47,15 @@ class ILCGains:
     ic_vertices: int = 8      # m_ic of eq. 3.16
     step: float = LiftedWeights.step      # lifted: share of the optimal change taken per trial
     q_head: float = LiftedWeights.q_head  # lifted: weight of heading (1/rad^2) against lateral error (1/m^2)
+    revert_margin: float = 0.1   # lifted: a trial whose error cost grew by more reverts its feedforward; 0: never
 
     def __post_init__(self):
         if self.lookahead < 1 or self.ic_vertices < 0 or not 0.0 <= self.gamma_u <= 1.0:
             raise ValueError("lookahead >= 1, ic_vertices >= 0 and gamma_u in [0, 1] required")
         if self.update not in ("lifted", "thesis"):
             raise ValueError(f"update must be 'lifted' or 'thesis', not {self.update!r}")
-        if not 0.0 < self.step <= 1.0 or self.q_head < 0:
-            raise ValueError("step in (0, 1] and q_head >= 0 required")
+        if not 0.0 < self.step <= 1.0 or self.q_head < 0 or self.revert_margin < 0:
+            raise ValueError("step in (0, 1], q_head >= 0 and revert_margin >= 0 required")
 
     def weights(self) -> LiftedWeights:
         return LiftedWeights(q_head=self.q_head, step=self.step)
@@ -67,20 +73,45 @@ class ILCFeedforward(Message):
         check_name("path_id", self.path_id)
 
 
+@dataclass(frozen=True)
+class ILCUpdate:
+    """What one update did."""
+    change_radps: float          # the largest change of the feedforward
+    reverted: bool = False       # the trial got worse: back to the baseline's feedforward
+    cost: float = 0.0            # the trial's error cost (ilc_monitor.trial_cost), and the baseline's
+    baseline_cost: float = 0.0
+    step_scale: float = 1.0
+    saturated_vertices: int = 0  # vertices where the command reached its limit
+
+    def describe(self) -> str:
+        if self.reverted:
+            what = (f"reverted to the last accepted feedforward: error cost {self.cost:.4g} against "
+                    f"{self.baseline_cost:.4g}, step now x{self.step_scale:.3g}")
+        else:
+            what = f"largest change {self.change_radps:.3f} rad/s"
+        sat = f", {self.saturated_vertices} saturated vertices left out" if self.saturated_vertices else ""
+        return what + sat
+
+
 class ILCMemory:
-    def __init__(self, path_id: str, n_vertices: int, w_ff: np.ndarray | None = None, trials: int = 0):
+    def __init__(self, path_id: str, n_vertices: int, w_ff: np.ndarray | None = None, trials: int = 0,
+                 baseline: ILCBaseline | None = None):
         self.path_id = path_id
         self.w_ff = np.zeros(n_vertices) if w_ff is None else np.asarray(w_ff, dtype=float).copy()
         self.trials = trials
+        self.baseline = baseline
         self._sum = np.zeros((n_vertices, 2))
         self._count = np.zeros(n_vertices)
         self._speed = np.zeros(n_vertices)
+        self._saturated = np.zeros(n_vertices, dtype=bool)
         self._age = (0.0, 0)         # sum of the estimates' ages, steps
 
-    def record(self, vertex: int, e_lat: float, e_head: float, v_mps: float = 0.0, age_s: float = 0.0) -> None:
+    def record(self, vertex: int, e_lat: float, e_head: float, v_mps: float = 0.0, age_s: float = 0.0,
+               saturated: bool = False) -> None:
         self._sum[vertex] += (e_lat, e_head)
         self._count[vertex] += 1
         self._speed[vertex] += v_mps
+        self._saturated[vertex] |= saturated
         self._age = (self._age[0] + age_s, self._age[1] + 1)
 
     @property
@@ -95,21 +126,41 @@ class ILCMemory:
         mean[seen] = self._sum[seen] / self._count[seen, None]
         return mean, seen
 
-    def update(self, gains: ILCGains, plant: ILCPlant | None = None, distances_m: np.ndarray | None = None) -> float:
-        """The feedforward for the next trial from this trial's errors; returns the largest change
-        (rad/s). `plant` and the route's vertex `distances_m` are the lifted update's (without them, or
-        with gains.update = "thesis": eq. 3.14-3.15). Vertices the robot never reached keep their
-        feedforward (only the forgetting factor applies)."""
+    def update(self, gains: ILCGains, plant: ILCPlant | None = None, distances_m: np.ndarray | None = None) -> ILCUpdate:
+        """The feedforward for the next trial from this trial's errors. `plant` and the route's vertex
+        `distances_m` are the lifted update's (without them, or with gains.update = "thesis": eq.
+        3.14-3.15, unguarded). Vertices the robot never reached keep their feedforward (only the
+        forgetting factor applies)."""
         if gains.update == "lifted" and plant is not None and distances_m is not None:
             return self._update_lifted(gains, plant, distances_m)
-        return self._update_thesis(gains)
+        return ILCUpdate(self._update_thesis(gains))
 
-    def _update_lifted(self, gains: ILCGains, plant: ILCPlant, distances_m: np.ndarray) -> float:
+    def _update_lifted(self, gains: ILCGains, plant: ILCPlant, distances_m: np.ndarray) -> ILCUpdate:
         err, seen = self.vertex_errors()
         speeds = mean_speeds(self._speed, self._count, 1.0)
-        model = lifted_model(distances_m, speeds, plant)
-        dw = norm_optimal_change(self.w_ff, err[:, 0], err[:, 1], seen, model, gains.weights())
-        return self._apply(gains.gamma_u * self.w_ff + dw)
+        wt = gains.weights()
+        cost = trial_cost(err[:, 0], err[:, 1], seen, wt)
+        speed = float(np.mean(speeds[seen])) if np.any(seen) else 0.0
+        b = self.baseline
+        worse = (b is not None and gains.revert_margin > 0 and b.comparable(speed)
+                 and cost > (1.0 + gains.revert_margin) * b.cost)
+        n_sat = int(np.sum(self._saturated & seen))
+        if worse:
+            b = replace(b, step_scale=max(b.step_scale / 2.0, MIN_STEP_SCALE))
+        else:
+            learn = seen & ~after_saturation(self._saturated, distances_m, speeds, recovery_s(plant))
+            scale = min(1.0, 2.0 * b.step_scale) if b is not None else 1.0
+            b = ILCBaseline(path_id=self.path_id, w_ff_radps=self.w_ff.tolist(), e_lat_m=err[:, 0].tolist(),
+                            e_head_rad=err[:, 1].tolist(), learn_from=learn.tolist(), speeds_mps=speeds.tolist(),
+                            cost=cost, speed_mps=speed, step_scale=scale)
+        prev_cost = self.baseline.cost if self.baseline is not None else cost
+        self.baseline = b
+        w0 = np.asarray(b.w_ff_radps)
+        model = lifted_model(distances_m, np.asarray(b.speeds_mps), plant)
+        dw = norm_optimal_change(w0, np.asarray(b.e_lat_m), np.asarray(b.e_head_rad), np.asarray(b.learn_from),
+                                 model, wt)
+        change = self._apply(gains.gamma_u * w0 + b.step_scale * dw)
+        return ILCUpdate(change, worse, cost, prev_cost, b.step_scale, n_sat)
 
     def _update_thesis(self, gains: ILCGains) -> float:
         err, seen = self.vertex_errors()
@@ -135,15 +186,20 @@ class ILCMemory:
         self._sum[:] = 0.0
         self._count[:] = 0.0
         self._speed[:] = 0.0
+        self._saturated[:] = False
         self._age = (0.0, 0)
         return change
 
     # --- persistence -------------------------------------------------------------------------
     @staticmethod
-    def file_of(directory: str | FsPath, path_id: str) -> FsPath:
-        return FsPath(directory) / f"{check_name('path_id', path_id)}.ilc"
+    def file_of(directory: str | FsPath, path_id: str, suffix: str = ".ilc") -> FsPath:
+        return FsPath(directory) / f"{check_name('path_id', path_id)}{suffix}"
 
     def save(self, directory: str | FsPath) -> FsPath:
+        """The feedforward, and the baseline the next trial is judged against (written first: a crash
+        between the two leaves an older feedforward with a newer baseline, which only costs one revert)."""
+        if self.baseline is not None:
+            write_atomically(self.file_of(directory, self.path_id, ".ilc-baseline"), encode(self.baseline))
         msg = ILCFeedforward(path_id=self.path_id, trials=self.trials, w_ff_radps=self.w_ff.tolist())
         return write_atomically(self.file_of(directory, self.path_id), encode(msg))
 
@@ -158,7 +214,11 @@ class ILCMemory:
         if len(msg.w_ff_radps) != n_vertices:
             raise ValueError(f"{f} holds {len(msg.w_ff_radps)} vertices but route {path_id} has {n_vertices}; "
                              "remove it to start learning afresh")
-        return cls(path_id, n_vertices, np.array(msg.w_ff_radps), msg.trials)
+        fb = cls.file_of(directory, path_id, ".ilc-baseline")
+        baseline = decode(ILCBaseline, fb.read_bytes()) if fb.exists() else None
+        if baseline is not None and len(baseline.w_ff_radps) != n_vertices:
+            baseline = None                       # from before the route was taught again: judge afresh
+        return cls(path_id, n_vertices, np.array(msg.w_ff_radps), msg.trials, baseline)
 
 
 class ILCLaw:
@@ -173,6 +233,7 @@ class ILCLaw:
         kappa = float(ctx.path.curvature[ctx.vertex])
         w_fb = fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.fl)
         w_ff = float(self.memory.w_ff[ctx.vertex])
-        self.memory.record(ctx.vertex, ctx.e_lat_m, ctx.e_head_rad, ctx.v_mps, ctx.loc_age_s)
+        self.memory.record(ctx.vertex, ctx.e_lat_m, ctx.e_head_rad, ctx.v_mps, ctx.loc_age_s,
+                           saturated=ctx.v_mps > MIN_SPEED_MPS and abs(w_fb + w_ff) > ctx.w_limit)
         return LawResult(w_fb + w_ff, feedforward_radps=w_ff)
 

@@ -258,9 +258,9 @@ class ControllerService(Service):
         if not self.learning:
             return "ILC learning off: feedforward unchanged"
         plant = ILCPlant(self.gains, tau_w_s=core.tracker.lag.tau_w_s, delay_s=self.ilc.mean_age_s)
-        change = self.ilc.update(self.cfg.ilc, plant, np.diff(core.path.s))
+        update = self.ilc.update(self.cfg.ilc, plant, np.diff(core.path.s))
         where = self.ilc.save(FsPath(self.cfg.data_dir) / "ilc")
-        return f"ILC feedforward updated (trial {self.ilc.trials}, largest change {change:.3f} rad/s), saved to {where}"
+        return f"ILC feedforward updated (trial {self.ilc.trials}, {update.describe()}), saved to {where}"
 
     # --- control loop ------------------------------------------------------------------------
     def on_message(self, key: str, msg) -> None:
