@@ -13,6 +13,7 @@ import os
 import queue
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path as FsPath
 from typing import Any, TextIO
 
@@ -37,6 +38,7 @@ from deploy.recorder import McapRecorder
 from deploy.ros2_export import Ros2Export
 from deploy.router import free_port
 from services.bridge.teach_driver import smooth_waypoints
+from services.controller.registry import law_entry
 
 log = logging.getLogger(__name__)
 ROBOT_SERVICES = ("localizer", "controller", "bridge")
@@ -130,6 +132,7 @@ class Experiment:
         self.ready_timeout_s = ready_timeout_s
         self.teach_sim_s = self.teach_wall_s = 0.0
         self.scheduled = False        # the trial being prepared follows the scheduler's schedule
+        self.learns_feedforward = law_entry(sc.controller.algorithm).learns == "ilc"   # the controller's own
         self.nominal_model: NominalModel | None = None
         self.decoder = Decoder(log)
         r = self.robot
@@ -453,14 +456,17 @@ class Experiment:
         for event in others:            # for whoever reads next (fits, liveliness)
             self.events.put(event)
 
-    def learn(self, trial: int) -> tuple[HyperMsg | None, int]:
-        """Between trials: make sure the trial's experiences are stored, then fit the GP
-        hyperparameters offline (thesis 5.2.3) and wait for them. Returns (hyperparameters,
-        experiences ingested on this route so far)."""
+    def learn(self, trial: int) -> "TrialLearning":
+        """Between trials: make sure the trial's experiences are stored (the controller learns its own
+        feedforward, if its law has one, as it stops), then fit the GP hyperparameters offline (thesis
+        5.2.3) and wait for them."""
         rep = self.control("controller", "stop", "repeat", trial)
+        note = rep.detail.removeprefix("idle; ").removeprefix("idle")
+        if self.learns_feedforward:
+            self.progress.line(f"learn   controller after trial {trial}: {note}")
         if "gp_store" not in self.alive:
             self.progress.line(f"learn   no store reachable after trial {trial} ({rep.detail}): nothing fitted")
-            return None, 0
+            return TrialLearning(None, 0, note)
         self.progress.update(f"learn   {rep.detail}; fitting GP hyperparameters ...")
         t0 = time.monotonic()
         try:
@@ -472,7 +478,7 @@ class Experiment:
         ingested = self.ingested()
         if hyper is not None:
             self.progress.line(fit_line(hyper, ingested, time.monotonic() - t0))
-        return hyper, ingested
+        return TrialLearning(hyper, ingested, note)
 
     def ingested(self) -> int:
         total = 0
@@ -481,6 +487,15 @@ class Experiment:
                 stats = decode(StoreStats, rep.payload)
                 total += sum(p.ingested for p in stats.paths if p.path_id == self.path_id)
         return total
+
+
+@dataclass(frozen=True)
+class TrialLearning:
+    """What was learned after a trial: the GP fit (None: none), the experiences ingested on the route
+    so far, and the controller's account of its stop (its feedforward update, the acknowledgements)."""
+    hyper: HyperMsg | None
+    ingested: int
+    controller_note: str
 
 
 def fit_line(hyper: HyperMsg, ingested: int, wall_s: float) -> str:
@@ -590,7 +605,8 @@ def _run_trials(sc: Scenario, exp: Experiment, out: FsPath, summary: dict, recor
     for trial in range(1, sc.trials.count + 1):
         rec = exp.repeat(trial, sc.trials.speed_of(trial))
         records.append(rec)
-        hyper, ingested = exp.learn(trial)
+        learned = exp.learn(trial)
+        hyper, ingested = learned.hyper, learned.ingested
         if sc.scheduler.enabled and trial < sc.trials.count:
             exp.reschedule(trial)
         d = predict_trial(trial, exp.trial_experiences(trial), model_train, model_hyper, sc.store.v_bin_mps,
@@ -600,6 +616,7 @@ def _run_trials(sc: Scenario, exp: Experiment, out: FsPath, summary: dict, recor
         s = truth_series(exp.truth_path, rec)
         series.append(s)
         m = _trial_summary(sc, exp, rec, s, d, hyper, ingested)
+        m["controller_note"] = learned.controller_note
         summary["trials"].append(m)
         write_json_atomic(out / "summary.json", summary)  # nothing lost if a later trial fails
         exp.progress.line(trial_line(sc.trials.count, rec, m))

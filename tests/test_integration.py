@@ -180,7 +180,8 @@ def test_store_cli_stats_query_fit_export_import(deployment, tmp_path, capsys):
     dep = deployment
     dep.exp.teach()
     dep.exp.repeat(1, 0.8)
-    hyper, ingested = dep.exp.learn(1)
+    learned = dep.exp.learn(1)
+    hyper, ingested = learned.hyper, learned.ingested
     assert hyper is not None and hyper.version == 1 and ingested > 50
     capsys.readouterr()
     ep = ["--connect", dep.endpoint]

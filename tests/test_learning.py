@@ -40,6 +40,8 @@ def test_ilc_experiment_1_cuts_max_errors_by_2_5_by_trial_6(tmp_path, scenario_f
     assert last["max_lateral_m"] <= first["max_lateral_m"] / 2.5, [t["max_lateral_m"] for t in trials]
     assert last["max_heading_rad"] <= first["max_heading_rad"] / 2.5, [t["max_heading_rad"] for t in trials]
     assert (tmp_path / "ilc1" / "data" / "controller" / "ilc" / "ilc1.ilc").exists()
+    assert (tmp_path / "ilc1" / "data" / "controller" / "ilc" / "ilc1.ilc-baseline").exists()
+    assert all(f"ILC feedforward updated (trial {t['trial']}, " in t["controller_note"] for t in trials), trials
 
 
 @pytest.mark.slow
@@ -52,6 +54,7 @@ def test_without_learning_ilc_keeps_no_feedforward_and_repeats_its_first_trial(t
     lat = [t["max_lateral_m"] for t in trials]
     assert abs(lat[1] - lat[0]) < 0.15 * lat[0], lat
     assert not (tmp_path / "ilc_off" / "data" / "controller" / "ilc" / "ilc_off.ilc").exists()
+    assert all("ILC learning off: feedforward unchanged" in t["controller_note"] for t in trials), trials
 
 
 LBNMPC = {"name": "lbnmpc1", "seed": 11, "robot": {"preset": "husky"},
