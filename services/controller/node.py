@@ -260,7 +260,7 @@ class ControllerService(Service):
         plant = ILCPlant(self.gains, tau_w_s=core.tracker.lag.tau_w_s, delay_s=self.ilc.mean_age_s)
         update = self.ilc.update(self.cfg.ilc, plant, np.diff(core.path.s))
         where = self.ilc.save(FsPath(self.cfg.data_dir) / "ilc")
-        return f"ILC feedforward updated (trial {self.ilc.trials}, {update.describe()}), saved to {where}"
+        return f"ILC feedforward updated (trial {self.ilc.trials}, {update.describe()}), saved as {where.name}"
 
     # --- control loop ------------------------------------------------------------------------
     def on_message(self, key: str, msg) -> None:
