@@ -343,7 +343,7 @@ class Experiment:
     def repeat(self, trial: int, speed: float) -> TrialRecord:
         path = self.path
         # the nominal time is at no more than the teach speed: a controller that slows down while its
-        # model is uncertain (RC-LB-NMPC's first trial) is not stuck while it drives a third of that
+        # model is uncertain (RC-LB-NMPC's first trial) is not stuck while it moves faster than a third of it
         v_teach = self.sc.path.teach_speed_mps
         nominal_s = path.length_m / max(min(speed, v_teach), 1e-3)
         sched = self.schedule(trial) if self.sc.scheduler.enabled else None
