@@ -31,13 +31,7 @@ prediction's recent-maximum rule): a new
 exceedance widens at once, and the widening is forgotten WINDOW ticks after the errors that asked
 for it, so a corner's surprise does not slow the straight that follows for the rest of the trial.
 With exchangeable errors about 1 / (WINDOW + 1) of the predictions leave their widened 3-sigma
-region. Errors are not exchangeable where a model is wrong: a new push (a slope, a corner) is seen by
-step j only j ticks after it began, so the K predictions in flight all meet it before the last step's
-factor has heard of it, and its errors grow over the horizon faster than the spread. So a step's
-factor is never below an earlier step's (the envelope over j' <= j): the first steps' realized needs
-widen the later ones at once, a burst of exceedances lasts ~j ticks rather than K. (Replayed on the
-recorded RC-LB-NMPC trials of four bench seeds: trials with more than 1 % of 1 s predictions outside,
-46 -> 26 of 80, the 1 s factor 13 % wider; in closed loop on another seed's eight: 28 -> 16 of 40.) A new route starts from the teach pass's factors (identification.horizon_factors), kept as a
+region. A new route starts from the teach pass's factors (identification.horizon_factors), kept as a
 floor until a step has seen WINDOW predictions; a later trial starts from the last one's window.
 
 The errors of a place repeat (a rough patch, a slope: the premise of learning from experience), and a
@@ -99,12 +93,7 @@ class SpreadCalibration:
                                  {**self.places_before, **self.places_now})
 
     def factors_at(self, s_m: float | None) -> np.ndarray:
-        """kappa_j for a prediction made at route distance `s_m` (None: the recent window's alone), never
-        narrower at a later step than at an earlier one."""
-        return np.maximum.accumulate(self._own_factors_at(s_m))
-
-    def _own_factors_at(self, s_m: float | None) -> np.ndarray:
-        """Each step's factor from its own needs alone."""
+        """kappa_j for a prediction made at route distance `s_m` (None: the recent window's alone)."""
         if s_m is None or not math.isfinite(s_m) or not self.places_before:
             return self.scales.copy()
         b = math.floor(s_m / PLACE_BIN_M)
