@@ -11,8 +11,8 @@ from common.robot import RobotParams, robot_from_preset
 from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
 from services.controller.actuator import ActuatorLag
-from services.controller.identification import (MIN_PRIOR_SCALE, TeachRecorder, fit_channel, identify,
-                                                identify_drive, scaled_prior, teach_residuals)
+from services.controller.identification import (TeachRecorder, fit_channel, identify, identify_drive,
+                                                scaled_prior, teach_residuals)
 from services.controller.uncertainty import PriorStd
 from services.localizer.pose_source import PoseSourceSettings
 
@@ -51,9 +51,9 @@ def test_a_channel_whose_command_never_changes_is_not_identified():
     assert any("hardly changed" in n for n in drive.notes)
 
 
-def teach(preset: str | RobotParams, speed: float, seed: int = 1, loc: PoseSourceSettings = PoseSourceSettings()):
+def teach(preset: str | RobotParams, speed: float, seed: int = 1):
     """The built-in teach driver's pass on the simulator, recorded as the controller records it."""
-    cl = ClosedLoop(ROUTE, [SLOPE], preset=preset, seed=seed, teach_speed=speed, loc=loc)
+    cl = ClosedLoop(ROUTE, [SLOPE], preset=preset, seed=seed, teach_speed=speed, loc=PoseSourceSettings())
     drv = PurePursuitDriver(cl.ref, speed, cl.robot.max_curvature, cl.robot.w_max_radps)
     cl.sim.reset(drv.start_pose, 0)
     cl.source.start_teach(0)
@@ -113,40 +113,6 @@ def test_the_prior_is_scaled_to_the_residuals_spread():
     prior, scale = scaled_prior(c * std0 * rng.standard_normal((20000, 3)), U, shape)
     np.testing.assert_allclose(scale, c, rtol=0.03)
     np.testing.assert_allclose(prior.per_mps, c * np.asarray(shape.per_mps), rtol=0.03)
-
-
-def test_the_localizers_share_of_the_residuals_is_taken_out_of_the_prior():
-    """Residuals of c_i times the shape's std plus a localizer's independent noise of known variance
-    give back c_i, not the noise's level; where the noise explains everything little more than the floor
-    remains."""
-    rng = np.random.default_rng(5)
-    shape = PriorStd()
-    n = 20000
-    U = np.column_stack([rng.uniform(0.2, 1.5, n), rng.uniform(-0.8, 0.8, n)])
-    std0 = np.asarray(shape.base) + np.outer(U[:, 0], shape.per_mps) + np.outer(np.abs(U[:, 1]), shape.per_radps)
-    c = np.array([2.0, 0.5, 1.3])
-    noise_std = np.array([0.02, 0.02, 0.004])          # far above the model's error across the route
-    G = c * std0 * rng.standard_normal((n, 3)) + noise_std * rng.standard_normal((n, 3))
-    N = np.tile(noise_std ** 2, (n, 1))
-    _, plain = scaled_prior(G, U, shape)
-    assert plain[1] > 4 * c[1]                          # left in, the noise would be the model's error
-    _, scale = scaled_prior(G, U, shape, N)
-    np.testing.assert_allclose(scale, c, rtol=0.15)
-    noise_only = noise_std * rng.standard_normal((n, 3))
-    _, floor = scaled_prior(noise_only, U, shape, N)
-    # at the floor, or within the sampling error of a noise 2-4x the model's whole error
-    plain_noise = scaled_prior(noise_only, U, shape)[1]
-    assert np.all(floor >= MIN_PRIOR_SCALE) and np.all(floor <= np.maximum(MIN_PRIOR_SCALE, 0.25 * plain_noise))
-
-
-def test_a_noisy_localizer_does_not_inflate_the_identified_spread():
-    """The same robot taught under a localizer of 1 cm and of 2.6 cm (its wandering error is what the
-    residuals of consecutive estimates see): the prior and the horizon's factors stay close, so the
-    predicted spread does not claim the localizer's wander as the model's error (it is carried apart)."""
-    clean = identify(*teach("husky", 0.5)[:2], "r1", 0.0)
-    noisy = identify(*teach("husky", 0.5, loc=PoseSourceSettings(noise_m=0.026))[:2], "r1", 0.0)
-    lateral_1s = lambda m: m.prior_scale[1] * m.spread_factors[9]     # noqa: E731  (relative to the default)
-    assert lateral_1s(noisy) < 1.4 * lateral_1s(clean)     # left in, the noise made it 2.1x
 
 
 @pytest.mark.integration

@@ -26,12 +26,8 @@ c_i^2 = mean(g_i^2 / std_i^2), the maximum-likelihood scale of a Gaussian, or mo
 99th percentile lies beyond a Gaussian's (a side slope crossed once is a heavy tail). One teach speed
 cannot separate the speed dependence from the base, so the shape stays an assumption and the level is
 measured;
-the controller's online check (calibration.py) corrects the level further while it drives.
-The localizer's own noise is taken out of the residuals (the variance its covariance reports for the two
-estimates a residual is the difference of), as the online check takes it out of the errors it checks:
-the predicted spread carries the localizer's covariance apart from the model's. Left in, a localizer of
-2-3 cm made the prior of a skid-steer 4x the default and the first steps' spread so wide that on a 0.2 m
-corridor the tightened band was narrower than the estimate's wander: the robot chased it and stopped.
+the controller's online check (calibration.py) corrects the level further while it drives. The
+localization noise between consecutive estimates counts in, which errs on the cautious side.
 """
 from __future__ import annotations
 
@@ -53,9 +49,6 @@ MAX_HORIZON = 30          # periods of spread factors identified (the NMPC's hor
 # leaves the residual at the odometry's noise whatever the dead time)
 DEAD_TIME_GAIN = 0.05
 MIN_SAMPLES = 20
-# residuals that the localizer's noise explains say nothing of the model's error below it: the prior keeps
-# at least this share of the default shape (the online check widens it where that is too little)
-MIN_PRIOR_SCALE = 0.25
 # a channel whose command hardly changed says nothing about its dynamics
 MIN_EXCITATION = {"v": 0.01, "w": 0.01}     # m/s, rad/s (std of the command)
 
@@ -259,14 +252,11 @@ def identify_drive(u: np.ndarray, y: np.ndarray, dt: float) -> DriveFit:
     return DriveFit(fits["v"], fits["w"], tuple(notes))
 
 
-def teach_residuals(rec: TeachRecorder, path: Path,
-                    lag: ActuatorLag) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The nominal model's one-period residuals g (m, 3) on the teach pass, the commands (m, 2) they
-    were driven with, and the variance (m, 3) the localizer's own noise adds to each (its covariance of
-    the two estimates the residual is the difference of, in the body frame), from the teach estimates
-    (made relative to the taught route)."""
+def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> tuple[np.ndarray, np.ndarray]:
+    """The nominal model's one-period residuals g (m, 3) on the teach pass and the commands (m, 2) they
+    were driven with, from the teach estimates (made relative to the taught route)."""
     builder = ExperienceBuilder(path, rec.dt, lag=lag)
-    G, U, N = [], [], []
+    G, U = [], []
     for tick in sorted(rec.estimates):
         loc = rec.estimates[tick]
         if loc.vertex >= len(path):
@@ -278,32 +268,15 @@ def teach_residuals(rec: TeachRecorder, path: Path,
         if obs is not None:
             G.append(obs.g)
             U.append(obs.a[5:7])
-            N.append(_body_variance(loc) + _body_variance(rec.estimates.get(tick - 1, loc)))
-    return (np.array(G, dtype=float).reshape(-1, 3), np.array(U, dtype=float).reshape(-1, 2),
-            np.array(N, dtype=float).reshape(-1, 3))
+    return np.array(G, dtype=float).reshape(-1, 3), np.array(U, dtype=float).reshape(-1, 2)
 
 
-def _body_variance(loc: LocState) -> np.ndarray:
-    """The estimate's variance along, across (its own heading) and in heading."""
-    if loc.cov_T_vertex_robot is None:
-        return np.zeros(3)
-    c = np.asarray(loc.cov_T_vertex_robot, dtype=float).reshape(3, 3)
-    th = float(loc.T_vertex_robot[2])
-    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
-    pos = R.T @ c[:2, :2] @ R
-    return np.array([pos[0, 0], pos[1, 1], c[2, 2]])
-
-
-def scaled_prior(G: np.ndarray, U: np.ndarray, shape: PriorStd = PriorStd(),
-                 noise_var: np.ndarray | None = None) -> tuple[PriorStd, np.ndarray]:
-    """The prior of `shape` scaled per component to the residuals' spread, the localizer's share of it
-    (`noise_var`, (m, 3)) taken out; and the scales."""
-    var = shape.std(U) ** 2
-    noise = np.zeros_like(G) if noise_var is None else noise_var
-    rms = np.sqrt(np.maximum(np.mean((np.square(G) - noise) / var, axis=0), 0.0))
-    # the RMS, or wider where the residuals have heavy tails (a side slope crossed once): 99 % of them
-    # within 2.576 sigma, as a Gaussian's
-    scale = np.maximum(np.maximum(rms, np.quantile(_needed_scale(G, var, noise), 0.99, axis=0)), MIN_PRIOR_SCALE)
+def scaled_prior(G: np.ndarray, U: np.ndarray, shape: PriorStd = PriorStd()) -> tuple[PriorStd, np.ndarray]:
+    """The prior of `shape` scaled per component to the residuals' spread; and the scales."""
+    z = np.abs(G / shape.std(U))
+    # the RMS, or wider where the residuals have heavy tails (a side slope crossed once): its 99th
+    # percentile is where a Gaussian's would be
+    scale = np.maximum(np.sqrt(np.mean(z ** 2, axis=0)), np.quantile(z, 0.99, axis=0) / 2.576)
     c = tuple(float(x) for x in scale)
     prior = PriorStd(base=tuple(b * s for b, s in zip(shape.base, c)),
                      per_mps=tuple(p * s for p, s in zip(shape.per_mps, c)),
@@ -315,15 +288,7 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _needed_scale(err: np.ndarray, model_var: np.ndarray, noise_var: np.ndarray) -> np.ndarray:
-    """Per error, the factor c on the model's standard deviation that puts it at 2.576
-    sqrt(c^2 model_var + noise_var), a Gaussian's 99th percentile (0 where the noise explains it)."""
-    need = np.maximum(np.square(err) / 2.576 ** 2 - noise_var, 0.0) / np.maximum(model_var, 1e-18)
-    return np.sqrt(need)
-
-
-def horizon_factors(G: np.ndarray, U: np.ndarray, prior: PriorStd, steps: int = MAX_HORIZON,
-                    noise_var: np.ndarray | None = None) -> np.ndarray:
+def horizon_factors(G: np.ndarray, U: np.ndarray, prior: PriorStd, steps: int = MAX_HORIZON) -> np.ndarray:
     """Per horizon step j, the factor on the prior's spread that held the teach pass's own errors: its
     residuals summed over j consecutive periods against the spread the prior gives them (independent per
     period, as the sigma-point transform propagates it). A disturbance tied to a place (a slope's push)
@@ -331,15 +296,12 @@ def horizon_factors(G: np.ndarray, U: np.ndarray, prior: PriorStd, steps: int = 
     the online check (calibration.py) starts from these factors. Lateral and heading alike; the factor
     holds 99 % of them where a Gaussian's 2.576 sigma would."""
     std = prior.std(U)
-    noise = np.zeros_like(G) if noise_var is None else noise_var
     out = np.ones(steps)
     for j in range(1, min(steps, len(G)) + 1):
         kernel = np.ones(j)
-        # the localizer's errors telescope in a sum of residuals: the first estimate's and the last's
-        # remain, about one residual's worth (the window's mean)
-        z = [_needed_scale(np.convolve(G[:, i], kernel, "valid"), np.convolve(std[:, i] ** 2, kernel, "valid"),
-                           np.convolve(noise[:, i], kernel, "valid") / j) for i in (1, 2)]
-        out[j - 1] = max(1.0, float(np.quantile(np.maximum(*z), 0.99)))
+        z = [np.abs(np.convolve(G[:, i], kernel, "valid")) / np.sqrt(np.convolve(std[:, i] ** 2, kernel, "valid"))
+             for i in (1, 2)]
+        out[j - 1] = max(1.0, float(np.quantile(np.maximum(*z), 0.99)) / 2.576)
     return out
 
 
@@ -351,11 +313,11 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
     u, y = rec.arrays()
     drive = identify_drive(u, y, rec.dt)
     lag = drive.lag(rec.dt, curvature_rate_max_per_ms)
-    G, U, N = teach_residuals(rec, path, lag)
+    G, U = teach_residuals(rec, path, lag)
     notes = list(drive.notes)
     if len(G) >= MIN_SAMPLES:
-        prior, scale = scaled_prior(G, U, shape, N)
-        factors = horizon_factors(G, U, prior, noise_var=N)
+        prior, scale = scaled_prior(G, U, shape)
+        factors = horizon_factors(G, U, prior)
     else:
         prior, scale, factors = shape, np.ones(3), np.ones(MAX_HORIZON)
         notes.append(f"only {len(G)} teach residuals (no teach pose estimates?): the default prior is kept")
