@@ -54,7 +54,8 @@ def messages() -> dict[str, Any]:
     a, g = np.random.default_rng(1).normal(size=(WINDOW, 9)), np.random.default_rng(2).normal(size=(WINDOW, 3))
     return {
         "Clock": sample(Clock), "Odometry": sample(Odometry), "TruthPose": sample(TruthPose),
-        "LocState": sample(LocState, status="ok", cov_T_vertex_robot=tuple(np.eye(3).ravel() * 1e-4)),
+        "LocState": sample(LocState, status="ok", cov_T_vertex_robot=tuple(np.eye(3).ravel() * 1e-4),
+                           cov_step_T_vertex_robot=tuple(np.eye(3).ravel() * 1e-5)),
         "VelocityCommand": sample(VelocityCommand), "ControllerStatus": sample(ControllerStatus),
         "ExperienceBatch": sample(ExperienceBatch, experiences=[experience] * BATCH),
         "ExperienceAck": sample(ExperienceAck),

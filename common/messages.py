@@ -113,8 +113,12 @@ LocStatus = Literal["ok", "vo", "dropout", "lost", "initializing", "teach", "idl
 class LocState(Message):
     """Localizer output, one per sensor tick. No pose unless status is 'ok' or 'vo' (never a made-up one);
     during teach ('teach') a source may give the pose relative to the newest vertex, which is not for
-    tracking (the route is still being made) but lets the controller identify its nominal model."""
-    SCHEMA_VERSION = 2
+    tracking (the route is still being made) but lets the controller identify its nominal model.
+    `cov_step_T_vertex_robot` is the covariance of the error of the motion between the estimate of
+    capture tick k - 1 and this one (its error less the previous one's; vertex frame), which is what a
+    one-period model residual sees of the localizer: far less than twice `cov_T_vertex_robot` where the
+    error wanders slowly. None: the source does not know it."""
+    SCHEMA_VERSION = 3
     stamp_s: float
     capture_stamp_s: float
     tick: int
@@ -129,12 +133,15 @@ class LocState(Message):
     T_vertex_robot: tuple[float, float, float] | None
     cov_T_vertex_robot: tuple[float, ...] | None
     matched_features: int | None
+    cov_step_T_vertex_robot: tuple[float, ...] | None = None
 
     def __post_init__(self):
         if self.has_pose and (self.T_vertex_robot is None or self.cov_T_vertex_robot is None):
             raise ValueError(f"status {self.status!r} requires T_vertex_robot and cov_T_vertex_robot")
-        if self.cov_T_vertex_robot is not None and len(self.cov_T_vertex_robot) != 9:
-            raise ValueError("cov_T_vertex_robot must hold 9 values (3x3 row-major)")
+        for name in ("cov_T_vertex_robot", "cov_step_T_vertex_robot"):
+            cov = getattr(self, name)
+            if cov is not None and len(cov) != 9:
+                raise ValueError(f"{name} must hold 9 values (3x3 row-major)")
         if self.vertex < 0:
             raise ValueError("vertex must be >= 0")
 

@@ -11,8 +11,8 @@ from common.robot import RobotParams, robot_from_preset
 from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
 from services.controller.actuator import ActuatorLag
-from services.controller.identification import (TeachRecorder, fit_channel, identify, identify_drive,
-                                                scaled_prior, teach_residuals)
+from services.controller.identification import (MIN_PRIOR_SCALE, TeachRecorder, TeachResiduals, fit_channel,
+                                                identify, identify_drive, scaled_prior, teach_residuals)
 from services.controller.uncertainty import PriorStd
 from services.localizer.pose_source import PoseSourceSettings
 
@@ -51,9 +51,9 @@ def test_a_channel_whose_command_never_changes_is_not_identified():
     assert any("hardly changed" in n for n in drive.notes)
 
 
-def teach(preset: str | RobotParams, speed: float, seed: int = 1):
+def teach(preset: str | RobotParams, speed: float, seed: int = 1, loc: PoseSourceSettings = PoseSourceSettings()):
     """The built-in teach driver's pass on the simulator, recorded as the controller records it."""
-    cl = ClosedLoop(ROUTE, [SLOPE], preset=preset, seed=seed, teach_speed=speed, loc=PoseSourceSettings())
+    cl = ClosedLoop(ROUTE, [SLOPE], preset=preset, seed=seed, teach_speed=speed, loc=loc)
     drv = PurePursuitDriver(cl.ref, speed, cl.robot.max_curvature, cl.robot.w_max_radps)
     cl.sim.reset(drv.start_pose, 0)
     cl.source.start_teach(0)
@@ -98,7 +98,7 @@ def test_the_identified_lag_explains_the_teach_pass_better_than_none():
     rest; the heading's are mostly the side slope's push, which is the learned disturbance's)."""
     rec, path, _ = teach("grizzly", 0.8)
     m = identify(rec, path, "r1", 0.0)
-    rms = lambda lag: np.sqrt(np.mean(teach_residuals(rec, path, lag)[0] ** 2, axis=0))   # noqa: E731
+    rms = lambda lag: np.sqrt(np.mean(teach_residuals(rec, path, lag).g ** 2, axis=0))   # noqa: E731
     with_lag, without = rms(ActuatorLag(*m.actuator_tau_s, DT)), rms(ActuatorLag(0.0, 0.0, DT))
     assert with_lag[0] < 0.8 * without[0] and with_lag[2] < without[2]
 
@@ -110,9 +110,72 @@ def test_the_prior_is_scaled_to_the_residuals_spread():
     U = np.column_stack([rng.uniform(0.2, 1.5, 20000), rng.uniform(-0.8, 0.8, 20000)])
     std0 = np.asarray(shape.base) + np.outer(U[:, 0], shape.per_mps) + np.outer(np.abs(U[:, 1]), shape.per_radps)
     c = np.array([2.0, 0.5, 1.3])
-    prior, scale = scaled_prior(c * std0 * rng.standard_normal((20000, 3)), U, shape)
+    prior, scale = scaled_prior(residuals(c * std0 * rng.standard_normal((20000, 3)), U), shape)
     np.testing.assert_allclose(scale, c, rtol=0.03)
     np.testing.assert_allclose(prior.per_mps, c * np.asarray(shape.per_mps), rtol=0.03)
+
+
+def residuals(G, U, step_var=0.0, decorrelated_var=0.0) -> TeachResiduals:
+    full = lambda v: np.broadcast_to(np.asarray(v, dtype=float), G.shape).copy()   # noqa: E731
+    return TeachResiduals(G, U, full(step_var), full(decorrelated_var))
+
+
+def test_the_localizers_step_noise_is_taken_out_of_the_prior():
+    """Residuals of c_i times the shape's std plus a localizer's step noise of known variance give back
+    c_i, not the noise's level; where the noise explains everything the floor remains."""
+    rng = np.random.default_rng(5)
+    shape = PriorStd()
+    n = 20000
+    U = np.column_stack([rng.uniform(0.2, 1.5, n), rng.uniform(-0.8, 0.8, n)])
+    std0 = np.asarray(shape.base) + np.outer(U[:, 0], shape.per_mps) + np.outer(np.abs(U[:, 1]), shape.per_radps)
+    c = np.array([2.0, 0.5, 1.3])
+    noise_std = np.array([0.02, 0.02, 0.004])          # far above the model's error across the route
+    G = c * std0 * rng.standard_normal((n, 3)) + noise_std * rng.standard_normal((n, 3))
+    plain = scaled_prior(residuals(G, U), shape)[1]
+    assert plain[1] > 4 * c[1]                          # left in, the noise would be the model's error
+    scale = scaled_prior(residuals(G, U, noise_std ** 2, 2 * noise_std ** 2), shape)[1]
+    np.testing.assert_allclose(scale, c, rtol=0.15)
+    noise_only = noise_std * rng.standard_normal((n, 3))
+    floor = scaled_prior(residuals(noise_only, U, noise_std ** 2, 2 * noise_std ** 2), shape)[1]
+    plain_noise = scaled_prior(residuals(noise_only, U), shape)[1]
+    assert np.all(floor >= MIN_PRIOR_SCALE) and np.all(floor <= np.maximum(MIN_PRIOR_SCALE, 0.25 * plain_noise))
+
+
+def test_the_pose_sources_step_covariance_is_its_errors_change_from_tick_to_tick():
+    """The variance the pose source reports for the change of its error over one tick, and the model of
+    the change over j ticks built from it and the error's variance, against the empirical variances of
+    its errors (a 1 s Gauss-Markov wander plus jitter, standing still so that the truth is fixed)."""
+    from common.messages import TruthPose
+    from services.localizer.pose_source import PoseSource
+    settings = PoseSourceSettings(noise_m=0.02, jitter_m=0.003)
+    src = PoseSource(settings, np.random.default_rng(3))
+    src.start_teach(0)
+    states = [src.on_truth(TruthPose(stamp_s=0.1 * k, tick=k, trial=0, x_world_m=0.0, y_world_m=0.0,
+                                     theta_world_rad=0.0, v_mps=0.0, w_radps=0.0, lateral_slip_mps=0.0), "r")
+              for k in range(60000)]
+    e = np.array([s.T_vertex_robot for s in states])
+    step = np.asarray(states[-1].cov_step_T_vertex_robot).reshape(3, 3).diagonal()
+    np.testing.assert_allclose(np.var(np.diff(e, axis=0), axis=0), step, rtol=0.05)
+    cov = np.asarray(states[-1].cov_T_vertex_robot).reshape(3, 3).diagonal()
+    res = residuals(np.zeros((len(e) - 1, 3)), np.zeros((len(e) - 1, 2)), step, 2 * cov)
+    for j in (1, 3, 10, 30):
+        empirical = np.var(e[j:] - e[:-j], axis=0)
+        # exact for the wander; the jitter's share decorrelates at once, which the model spreads over ticks
+        np.testing.assert_allclose(res.noise_over(j)[0], empirical, rtol=0.2)
+
+
+@pytest.mark.parametrize("noise_m", [0.01, 0.026])
+def test_a_noisy_localizer_neither_inflates_nor_hides_the_models_error(noise_m):
+    """The same Husky taught under a localizer of 1 and 2.6 cm (a wander of 1 s correlation time plus
+    jitter, the pose source's default shape) against one of 0.5 mm: the lateral spread the identified
+    model predicts at 1 s (prior scale times the horizon factor) stays within 0.7-1.4x the reference.
+    Left in, the noise made it 2.7x and 5.8x; taken out as if the estimates were independent (twice the
+    variance per residual), the prior sat at its floor for both."""
+    def lateral_1s(loc):
+        m = identify(*teach("husky", 0.5, loc=loc)[:2], "r1", 0.0)
+        return m.prior_scale[1] * m.spread_factors[9]
+    reference = lateral_1s(PoseSourceSettings(noise_m=0.0005, jitter_m=0.0, noise_heading_rad=math.radians(0.01)))
+    assert 0.7 * reference < lateral_1s(PoseSourceSettings(noise_m=noise_m)) < 1.4 * reference
 
 
 @pytest.mark.integration

@@ -26,8 +26,18 @@ c_i^2 = mean(g_i^2 / std_i^2), the maximum-likelihood scale of a Gaussian, or mo
 99th percentile lies beyond a Gaussian's (a side slope crossed once is a heavy tail). One teach speed
 cannot separate the speed dependence from the base, so the shape stays an assumption and the level is
 measured;
-the controller's online check (calibration.py) corrects the level further while it drives. The
-localization noise between consecutive estimates counts in, which errs on the cautious side.
+the controller's online check (calibration.py) corrects the level further while it drives.
+
+The localizer's own error is taken out where the localizer says how large it is. A one-period residual
+holds the change of the estimate's error from one tick to the next (LocState.cov_step_T_vertex_robot),
+and a sum of j residuals the change over j ticks, which grows from that one-tick value towards twice the
+estimate's variance as the error decorrelates: V(j) = V_inf - (V_inf - V_1) rho^(j-1), rho = 1 - V_1 / V_inf
+(exact for a Gauss-Markov wander). Left in, a localizer of 2-3 cm made a skid-steer's prior 4x the default,
+its predicted spread wider than a 0.2 m corridor allows, and the robot stopped itself; twice the
+variance taken out of every residual instead (independent estimates) left a slowly wandering 1 cm
+localizer's robot with the prior at its floor and over-confident on a slope. The predicted spread
+carries the localizer's covariance apart from the model's (horizon_covariance.py). A localizer that
+does not report its step covariance keeps the whole residual in the model's share (cautious).
 """
 from __future__ import annotations
 
@@ -49,6 +59,9 @@ MAX_HORIZON = 30          # periods of spread factors identified (the NMPC's hor
 # leaves the residual at the odometry's noise whatever the dead time)
 DEAD_TIME_GAIN = 0.05
 MIN_SAMPLES = 20
+# residuals that the localizer's noise explains say nothing of the model's error below it: the prior keeps
+# at least this share of the default shape (the online check widens it where that is too little)
+MIN_PRIOR_SCALE = 0.25
 # a channel whose command hardly changed says nothing about its dynamics
 MIN_EXCITATION = {"v": 0.01, "w": 0.01}     # m/s, rad/s (std of the command)
 
@@ -252,11 +265,36 @@ def identify_drive(u: np.ndarray, y: np.ndarray, dt: float) -> DriveFit:
     return DriveFit(fits["v"], fits["w"], tuple(notes))
 
 
-def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> tuple[np.ndarray, np.ndarray]:
-    """The nominal model's one-period residuals g (m, 3) on the teach pass and the commands (m, 2) they
-    were driven with, from the teach estimates (made relative to the taught route)."""
+@dataclass(frozen=True)
+class TeachResiduals:
+    """The nominal model's one-period residuals on the teach pass (body frame: along, across, heading),
+    the commands they were driven with, and per residual the variances the localizer's error adds: over
+    one period (`step_var`) and once decorrelated (`decorrelated_var`, its two estimates' variances);
+    zero where the localizer does not say."""
+    g: np.ndarray                   # (m, 3)
+    u: np.ndarray                   # (m, 2)
+    step_var: np.ndarray            # (m, 3)
+    decorrelated_var: np.ndarray    # (m, 3)
+
+    def __len__(self) -> int:
+        return len(self.g)
+
+    def noise_over(self, j: int) -> np.ndarray:
+        """Per window of j consecutive residuals (m - j + 1, 3), the variance of the localizer's error
+        change across it: the sum telescopes to the error of its last estimate less its first."""
+        kernel = np.ones(j) / j
+        v1 = np.column_stack([np.convolve(self.step_var[:, i], kernel, "valid") for i in range(3)])
+        vinf = np.column_stack([np.convolve(self.decorrelated_var[:, i], kernel, "valid") for i in range(3)])
+        vinf = np.maximum(vinf, v1)
+        rho = np.divide(vinf - v1, vinf, out=np.zeros_like(vinf), where=vinf > 0.0)
+        return vinf - (vinf - v1) * rho ** (j - 1)
+
+
+def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachResiduals:
+    """The nominal model's one-period residuals on the teach pass from the teach estimates (made
+    relative to the taught route), with the localizer's share of them."""
     builder = ExperienceBuilder(path, rec.dt, lag=lag)
-    G, U = [], []
+    G, U, step, decorrelated = [], [], [], []
     for tick in sorted(rec.estimates):
         loc = rec.estimates[tick]
         if loc.vertex >= len(path):
@@ -268,15 +306,42 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> tuple[n
         if obs is not None:
             G.append(obs.g)
             U.append(obs.a[5:7])
-    return np.array(G, dtype=float).reshape(-1, 3), np.array(U, dtype=float).reshape(-1, 2)
+            before = rec.estimates.get(tick - 1)
+            known = loc.cov_step_T_vertex_robot is not None and before is not None
+            step.append(_body_variance(loc, loc.cov_step_T_vertex_robot) if known else np.zeros(3))
+            decorrelated.append(_body_variance(loc, loc.cov_T_vertex_robot) + _body_variance(before, before.cov_T_vertex_robot)
+                                if known else np.zeros(3))
+    as_array = lambda rows, n: np.array(rows, dtype=float).reshape(-1, n)   # noqa: E731
+    return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3))
 
 
-def scaled_prior(G: np.ndarray, U: np.ndarray, shape: PriorStd = PriorStd()) -> tuple[PriorStd, np.ndarray]:
-    """The prior of `shape` scaled per component to the residuals' spread; and the scales."""
-    z = np.abs(G / shape.std(U))
-    # the RMS, or wider where the residuals have heavy tails (a side slope crossed once): its 99th
-    # percentile is where a Gaussian's would be
-    scale = np.maximum(np.sqrt(np.mean(z ** 2, axis=0)), np.quantile(z, 0.99, axis=0) / 2.576)
+def _body_variance(loc: LocState, cov: tuple[float, ...] | None) -> np.ndarray:
+    """A vertex-frame covariance as variances along and across the estimate's heading, and in heading."""
+    if cov is None:
+        return np.zeros(3)
+    c = np.asarray(cov, dtype=float).reshape(3, 3)
+    th = float(loc.T_vertex_robot[2])
+    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    pos = R.T @ c[:2, :2] @ R
+    return np.array([pos[0, 0], pos[1, 1], c[2, 2]])
+
+
+def _needed_scale(err: np.ndarray, model_var: np.ndarray, noise_var: np.ndarray) -> np.ndarray:
+    """Per error, the factor c on the model's standard deviation that puts it at 2.576
+    sqrt(c^2 model_var + noise_var), a Gaussian's 99th percentile (0 where the noise explains it)."""
+    need = np.maximum(np.square(err) / 2.576 ** 2 - noise_var, 0.0) / np.maximum(model_var, 1e-18)
+    return np.sqrt(need)
+
+
+def scaled_prior(res: TeachResiduals, shape: PriorStd = PriorStd()) -> tuple[PriorStd, np.ndarray]:
+    """The prior of `shape` scaled per component to the residuals' spread less the localizer's share;
+    and the scales."""
+    var = shape.std(res.u) ** 2
+    rms = np.sqrt(np.maximum(np.mean((np.square(res.g) - res.step_var) / var, axis=0), 0.0))
+    # the RMS, or wider where the residuals have heavy tails (a side slope crossed once): 99 % of them
+    # within 2.576 sigma, as a Gaussian's
+    heavy = np.quantile(_needed_scale(res.g, var, res.step_var), 0.99, axis=0)
+    scale = np.maximum(np.maximum(rms, heavy), MIN_PRIOR_SCALE)
     c = tuple(float(x) for x in scale)
     prior = PriorStd(base=tuple(b * s for b, s in zip(shape.base, c)),
                      per_mps=tuple(p * s for p, s in zip(shape.per_mps, c)),
@@ -288,20 +353,21 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def horizon_factors(G: np.ndarray, U: np.ndarray, prior: PriorStd, steps: int = MAX_HORIZON) -> np.ndarray:
+def horizon_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZON) -> np.ndarray:
     """Per horizon step j, the factor on the prior's spread that held the teach pass's own errors: its
     residuals summed over j consecutive periods against the spread the prior gives them (independent per
     period, as the sigma-point transform propagates it). A disturbance tied to a place (a slope's push)
     repeats period after period, and the sum grows like j where the prior's spread grows like sqrt(j):
     the online check (calibration.py) starts from these factors. Lateral and heading alike; the factor
-    holds 99 % of them where a Gaussian's 2.576 sigma would."""
-    std = prior.std(U)
+    holds 99 % of them where a Gaussian's 2.576 sigma would, the localizer's share of each sum aside."""
+    var = prior.std(res.u) ** 2
     out = np.ones(steps)
-    for j in range(1, min(steps, len(G)) + 1):
+    for j in range(1, min(steps, len(res)) + 1):
         kernel = np.ones(j)
-        z = [np.abs(np.convolve(G[:, i], kernel, "valid")) / np.sqrt(np.convolve(std[:, i] ** 2, kernel, "valid"))
-             for i in (1, 2)]
-        out[j - 1] = max(1.0, float(np.quantile(np.maximum(*z), 0.99)) / 2.576)
+        noise = res.noise_over(j)
+        z = [_needed_scale(np.convolve(res.g[:, i], kernel, "valid"), np.convolve(var[:, i], kernel, "valid"),
+                           noise[:, i]) for i in (1, 2)]
+        out[j - 1] = max(1.0, float(np.quantile(np.maximum(*z), 0.99)))
     return out
 
 
@@ -313,14 +379,16 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
     u, y = rec.arrays()
     drive = identify_drive(u, y, rec.dt)
     lag = drive.lag(rec.dt, curvature_rate_max_per_ms)
-    G, U = teach_residuals(rec, path, lag)
+    res = teach_residuals(rec, path, lag)
     notes = list(drive.notes)
-    if len(G) >= MIN_SAMPLES:
-        prior, scale = scaled_prior(G, U, shape)
-        factors = horizon_factors(G, U, prior)
+    if len(res) >= MIN_SAMPLES:
+        prior, scale = scaled_prior(res, shape)
+        factors = horizon_factors(res, prior)
+        if not res.step_var.any():
+            notes.append("the localizer does not report its step covariance: its noise counts as the model's")
     else:
         prior, scale, factors = shape, np.ones(3), np.ones(MAX_HORIZON)
-        notes.append(f"only {len(G)} teach residuals (no teach pose estimates?): the default prior is kept")
+        notes.append(f"only {len(res)} teach residuals (no teach pose estimates?): the default prior is kept")
     fit = lambda c, attr, default: getattr(c, attr) if c is not None else default   # noqa: E731
     return NominalModel(
         stamp_s=stamp_s, robot=robot, path_id=path.path_id, dt_s=rec.dt, model_tag=lag.model_tag,
@@ -334,4 +402,4 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), curvature_rate_max_per_ms=lag.curvature_rate_max_per_ms,
         prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
         prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
-        spread_factors=[float(f) for f in factors], residual_samples=len(G), notes=notes)
+        spread_factors=[float(f) for f in factors], residual_samples=len(res), notes=notes)

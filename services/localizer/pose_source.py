@@ -107,12 +107,11 @@ class PoseSource:
         for at_m, length_m, lateral_m in self.cfg.jumps:
             if at_m <= along < at_m + length_m:
                 T_vr = T_vr + np.array([0.0, lateral_m, 0.0])
-        cov = self._cov()
         return LocState(stamp_s=truth.stamp_s, capture_stamp_s=captured.stamp_s, tick=truth.tick,
                         capture_tick=captured.tick, trial=self.trial, path_id=path_id, source="pose", status="ok", reason="",
                         vertex=vertex, distance_m=float(self.path.s[vertex] + T_vr[0]),
-                        T_vertex_robot=tuple(float(v) for v in T_vr),
-                        cov_T_vertex_robot=tuple(float(v) for v in cov.ravel()), matched_features=None)
+                        T_vertex_robot=tuple(float(v) for v in T_vr), matched_features=None,
+                        **self._covariances())
 
     def _noisy(self, truth: TruthPose) -> np.ndarray:
         """The truth with this source's error: a Gauss-Markov wander (e <- a e + sqrt(1 - a^2) sigma n
@@ -129,6 +128,17 @@ class PoseSource:
         sp2 = self.cfg.noise_m ** 2 + self.cfg.jitter_m ** 2
         return np.diag([sp2, sp2, self.cfg.noise_heading_rad ** 2])
 
+    def _cov_step(self) -> np.ndarray:
+        """The covariance of the error's change from one tick to the next: 2 sigma^2 (1 - a) of the
+        wander and twice the jitter's."""
+        a = math.exp(-self.cfg.period_s / self.cfg.noise_tau_s) if self.cfg.noise_tau_s > 0 else 0.0
+        sp2 = 2.0 * (1.0 - a) * self.cfg.noise_m ** 2 + 2.0 * self.cfg.jitter_m ** 2
+        return np.diag([sp2, sp2, 2.0 * (1.0 - a) * self.cfg.noise_heading_rad ** 2])
+
+    def _covariances(self) -> dict[str, tuple[float, ...]]:
+        return {"cov_T_vertex_robot": tuple(float(v) for v in self._cov().ravel()),
+                "cov_step_T_vertex_robot": tuple(float(v) for v in self._cov_step().ravel())}
+
     def _teach_state(self, truth: TruthPose, path_id: str) -> LocState:
         """During teach: the estimate relative to the newest vertex, as VT&R's odometry gives it (status
         'teach': not for tracking; the controller identifies its nominal model with it)."""
@@ -138,7 +148,7 @@ class PoseSource:
                         capture_tick=truth.tick, trial=self.trial, path_id=path_id, source="pose", status="teach",
                         reason=f"teaching: {vertex + 1} vertices", vertex=vertex,
                         distance_m=self.recorder.length_m + float(T_vr[0]), T_vertex_robot=tuple(float(v) for v in T_vr),
-                        cov_T_vertex_robot=tuple(float(v) for v in self._cov().ravel()), matched_features=None)
+                        matched_features=None, **self._covariances())
 
     def _std(self) -> np.ndarray:
         return np.array([self.cfg.noise_m, self.cfg.noise_m, self.cfg.noise_heading_rad])
