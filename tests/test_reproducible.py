@@ -24,9 +24,7 @@ from tests.test_store_service import N_VERTICES, rig  # noqa: F401  (the store f
 MODEL = "unicycle-test"
 
 # RC-LB-NMPC across a sandy side slope, as the main job but on a ~20 m route and three trials: trial 1 has
-# no model, trials 2 and 3 predict from the GP fitted on the trials before, with eviction under way. The
-# corridor leaves trial 1 room: unlearned, the slope pushes the robot ~0.24 m off even under a perfect
-# localizer (docs/results.md, stop 39), and the test is about two runs agreeing, not about that margin
+# no model, trials 2 and 3 predict from the GP fitted on the trials before, with eviction under way
 SIDESLOPE = {
     "name": "repro", "seed": 3, "robot": {"preset": "husky"},
     "path": {"waypoints": [[0, 0], [7, 0], [13, 4], [19, 4]], "teach_speed_mps": 0.5},
@@ -35,7 +33,7 @@ SIDESLOPE = {
                 {"kind": "slip", "center": [10.0, 2.0], "radius_m": 3.0, "traction": 0.7}],
     "localization": {"source": "pose", "noise_m": 0.01, "delay_s": 0.1},
     "controller": {"algorithm": "rc-lb-nmpc", "nmpc": {"crab_reference": True}},
-    "constraints": {"lateral_m": 0.3, "heading_deg": 15.0},
+    "constraints": {"lateral_m": 0.25, "heading_deg": 15.0},
     "trials": {"count": 3, "speed": 1.0},
 }
 

@@ -25,8 +25,11 @@ and the turn of a period) and each component is scaled so that the residuals hav
 c_i^2 = mean(g_i^2 / std_i^2), the maximum-likelihood scale of a Gaussian, or more where the residuals'
 99th percentile lies beyond a Gaussian's (a side slope crossed once is a heavy tail). One teach speed
 cannot separate the speed dependence from the base, so the shape stays an assumption and the level is
-measured;
-the controller's online check (calibration.py) corrects the level further while it drives.
+measured, never below the default's: a teach pass is driven slowly and smoothly and cannot vouch for a
+repeat at twice its speed (with the level taken below the default where the teach residuals were small,
+trial 1 of RC-LB-NMPC drove faster into errors its first predictions had not allowed for: bench seed
+9173, docs/results.md stop 39). The controller's online check (calibration.py) corrects the level
+further while it drives.
 
 The localizer's own error is taken out where the localizer says how large it is. A one-period residual
 holds the change of the estimate's error from one tick to the next (LocState.cov_step_T_vertex_robot),
@@ -34,8 +37,8 @@ and a sum of j residuals the change over j ticks, which grows from that one-tick
 estimate's variance as the error decorrelates: V(j) = V_inf - (V_inf - V_1) rho^(j-1), rho = 1 - V_1 / V_inf
 (exact for a Gauss-Markov wander). Left in, a localizer of 2-3 cm made a skid-steer's prior 4x the default,
 its predicted spread wider than a 0.2 m corridor allows, and the robot stopped itself; twice the
-variance taken out of every residual instead (independent estimates) left a slowly wandering 1 cm
-localizer's robot with the prior at its floor and over-confident on a slope. The predicted spread
+variance taken out of every residual instead (independent estimates) took a slowly wandering 1 cm
+localizer's error for all of the model's. The predicted spread
 carries the localizer's covariance apart from the model's (horizon_covariance.py). A localizer that
 does not report its step covariance keeps the whole residual in the model's share (cautious).
 """
@@ -59,9 +62,8 @@ MAX_HORIZON = 30          # periods of spread factors identified (the NMPC's hor
 # leaves the residual at the odometry's noise whatever the dead time)
 DEAD_TIME_GAIN = 0.05
 MIN_SAMPLES = 20
-# residuals that the localizer's noise explains say nothing of the model's error below it: the prior keeps
-# at least this share of the default shape (the online check widens it where that is too little)
-MIN_PRIOR_SCALE = 0.25
+# the prior keeps at least the default shape's level (see above); the teach residuals only raise it
+MIN_PRIOR_SCALE = 1.0
 # a channel whose command hardly changed says nothing about its dynamics
 MIN_EXCITATION = {"v": 0.01, "w": 0.01}     # m/s, rad/s (std of the command)
 
