@@ -25,11 +25,7 @@ and the turn of a period) and each component is scaled so that the residuals hav
 c_i^2 = mean(g_i^2 / std_i^2), the maximum-likelihood scale of a Gaussian, or more where the residuals'
 99th percentile lies beyond a Gaussian's (a side slope crossed once is a heavy tail). One teach speed
 cannot separate the speed dependence from the base, so the shape stays an assumption and the level is
-measured, never below the default's: a teach pass is driven slowly and smoothly and cannot vouch for a
-repeat at twice its speed (with the level taken below the default where the teach residuals were small,
-trial 1 of RC-LB-NMPC drove faster into errors its first predictions had not allowed for: bench seed
-9173, docs/results.md stop 39). The controller's online check (calibration.py) corrects the level
-further while it drives.
+measured; the controller's online check (calibration.py) corrects the level further while it drives.
 
 The localizer's own error is taken out where the localizer says how large it is. A one-period residual
 holds the change of the estimate's error from one tick to the next (LocState.cov_step_T_vertex_robot),
@@ -41,6 +37,12 @@ variance taken out of every residual instead (independent estimates) took a slow
 localizer's error for all of the model's. The predicted spread
 carries the localizer's covariance apart from the model's (horizon_covariance.py). A localizer that
 does not report its step covariance keeps the whole residual in the model's share (cautious).
+The subtraction only undoes an inflation: it lowers a level above the default's down to the default's
+at most, and a level below the default is the residuals' as they are (the localizer's noise in them
+errs on the cautious side). Free to go lower, the level followed a clean teach pass down and trial 1 of
+RC-LB-NMPC drove fast into errors a slow teach had not shown (more violations on bench seed 9173); held
+at the default or above, RC could not fit a 5 cm corridor (thesis 7.4.3) that the residuals' own level
+fits (docs/results.md, stop 39).
 """
 from __future__ import annotations
 
@@ -62,8 +64,8 @@ MAX_HORIZON = 30          # periods of spread factors identified (the NMPC's hor
 # leaves the residual at the odometry's noise whatever the dead time)
 DEAD_TIME_GAIN = 0.05
 MIN_SAMPLES = 20
-# the prior keeps at least the default shape's level (see above); the teach residuals only raise it
-MIN_PRIOR_SCALE = 1.0
+# the default shape's level, down to which (not below) the localizer's step noise may lower the prior
+DEFAULT_LEVEL = 1.0
 # a channel whose command hardly changed says nothing about its dynamics
 MIN_EXCITATION = {"v": 0.01, "w": 0.01}     # m/s, rad/s (std of the command)
 
@@ -335,15 +337,21 @@ def _needed_scale(err: np.ndarray, model_var: np.ndarray, noise_var: np.ndarray)
     return np.sqrt(need)
 
 
+def _level(g: np.ndarray, var: np.ndarray, noise_var: np.ndarray) -> np.ndarray:
+    """Per component, the scale on the shape's std that fits the residuals less `noise_var`: their RMS,
+    or wider where they have heavy tails (a side slope crossed once): 99 % of them within 2.576 sigma,
+    as a Gaussian's."""
+    rms = np.sqrt(np.maximum(np.mean((np.square(g) - noise_var) / var, axis=0), 0.0))
+    return np.maximum(rms, np.quantile(_needed_scale(g, var, noise_var), 0.99, axis=0))
+
+
 def scaled_prior(res: TeachResiduals, shape: PriorStd = PriorStd()) -> tuple[PriorStd, np.ndarray]:
-    """The prior of `shape` scaled per component to the residuals' spread less the localizer's share;
-    and the scales."""
+    """The prior of `shape` scaled per component to the residuals' spread, and the scales. The
+    localizer's step noise is taken out of a level above the default's only, down to the default's at
+    most: below it, the residuals as they are decide (see the module's docstring)."""
     var = shape.std(res.u) ** 2
-    rms = np.sqrt(np.maximum(np.mean((np.square(res.g) - res.step_var) / var, axis=0), 0.0))
-    # the RMS, or wider where the residuals have heavy tails (a side slope crossed once): 99 % of them
-    # within 2.576 sigma, as a Gaussian's
-    heavy = np.quantile(_needed_scale(res.g, var, res.step_var), 0.99, axis=0)
-    scale = np.maximum(np.maximum(rms, heavy), MIN_PRIOR_SCALE)
+    raw = _level(res.g, var, np.zeros_like(res.g))
+    scale = np.maximum(_level(res.g, var, res.step_var), np.minimum(raw, DEFAULT_LEVEL))
     c = tuple(float(x) for x in scale)
     prior = PriorStd(base=tuple(b * s for b, s in zip(shape.base, c)),
                      per_mps=tuple(p * s for p, s in zip(shape.per_mps, c)),
