@@ -15,7 +15,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path as FsPath
-from typing import Any, TextIO
+from typing import Any, Callable, TextIO
 
 import numpy as np
 import zenoh
@@ -411,7 +411,9 @@ class Experiment:
                 finished = finished or msg.reason == ENDED_AT_ROUTE_END
                 rec.completed = finished
                 rec.end_reason = "end of route" if finished else (halt_reason or msg.reason)
+                end_stamp_s = msg.stamp_s
                 break
+        self._late_truth(rec, end_stamp_s)
         self._late_statuses(rec)
         rec.wall_s = time.monotonic() - t_wall
         return rec
@@ -434,26 +436,36 @@ class Experiment:
         now = time.monotonic()
         return next((name for name, t in gone.items() if name in ROBOT_SERVICES and now - t > REJOIN_S), None)
 
+    def _late_truth(self, rec: TrialRecord, end_stamp_s: float) -> None:
+        """The bridge's truth of its last tick may reach the runner after its end event (each key has its
+        own subscriber): wait for it (the event carries its stamp), so the window a summary counts
+        (TrialRecord.stepped_status) does not depend on the wall clock."""
+        self._await_late(rec, "truth", rec.truth, lambda: bool(rec.truth) and rec.truth[-1].stamp_s >= end_stamp_s - 1e-6)
+
     def _late_statuses(self, rec: TrialRecord) -> None:
         """The controller's answers to the last stepped ticks may reach the runner after the bridge's end
-        event (another publisher): wait for the one before the last stepped tick, so the statuses a
-        summary counts (TrialRecord.stepped_status) do not depend on the wall clock. In lockstep that
-        status is never dropped, so the wait is bounded only against a controller that died (a loaded
-        machine can hold it back more than a second); in realtime it may have been dropped: 1 s."""
+        event (another publisher): wait for the one before the last stepped tick, as for the truth."""
         if not rec.truth:
             return
+        last = rec.truth[-1].tick
+        self._await_late(rec, "status", rec.status, lambda: any(s.tick >= last - 1 for s in rec.status[-3:]))
+
+    def _await_late(self, rec: TrialRecord, kind_wanted: str, into: list, arrived: Callable[[], bool]) -> None:
+        """Take this trial's `kind_wanted` messages from the events into `into` until `arrived()`. In
+        lockstep they are never dropped, so the wait is bounded only against a service that died (a
+        loaded machine can hold them back more than a second); in realtime they may have been: 1 s."""
         wait_s = LATE_STATUS_LOCKSTEP_S if self.sc.sim.clock == "lockstep" else 1.0
-        last, deadline, others = rec.truth[-1].tick, time.monotonic() + wait_s, []
-        while not any(s.tick >= last - 1 for s in rec.status[-3:]) and time.monotonic() < deadline:
+        deadline, others = time.monotonic() + wait_s, []
+        while not arrived() and time.monotonic() < deadline:
             try:
                 kind, msg = self.events.get(timeout=0.1)
             except queue.Empty:
                 continue
-            if kind == "status" and msg.trial == rec.trial:
-                rec.status.append(msg)
+            if kind == kind_wanted and msg.trial == rec.trial:
+                into.append(msg)
             else:
                 others.append((kind, msg))
-        for event in others:            # for whoever reads next (fits, liveliness)
+        for event in others:            # for whoever reads next (statuses, fits, liveliness)
             self.events.put(event)
 
     def learn(self, trial: int) -> "TrialLearning":
