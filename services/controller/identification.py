@@ -34,9 +34,9 @@ estimate's variance as the error decorrelates: V(j) = V_inf - (V_inf - V_1) rho^
 (exact for a Gauss-Markov wander). Left in, a localizer of 2-3 cm made a skid-steer's prior 4x the default,
 its predicted spread wider than a 0.2 m corridor allows, and the robot stopped itself; twice the
 variance taken out of every residual instead (independent estimates) took a slowly wandering 1 cm
-localizer's error for all of the model's. The predicted spread
-carries the localizer's covariance apart from the model's (horizon_covariance.py). A localizer that
-does not report its step covariance keeps the whole residual in the model's share (cautious).
+localizer's error for all of the model's. The predicted spread carries the localizer's covariance apart
+from the model's (horizon_covariance.py). A localizer that does not report its step covariance keeps
+the whole residual in the model's share (cautious).
 The subtraction only undoes an inflation: it lowers a level above the default's down to the default's
 at most, and a level below the default is the residuals' as they are (the localizer's noise in them
 errs on the cautious side). Free to go lower, the level followed a clean teach pass down and trial 1 of

@@ -116,7 +116,7 @@ class PoseSource:
     def _noisy(self, truth: TruthPose) -> np.ndarray:
         """The truth with this source's error: a Gauss-Markov wander (e <- a e + sqrt(1 - a^2) sigma n
         keeps its std at sigma) plus independent jitter."""
-        a = math.exp(-self.cfg.period_s / self.cfg.noise_tau_s) if self.cfg.noise_tau_s > 0 else 0.0
+        a = self._decay()
         self._error = a * self._error + math.sqrt(1.0 - a * a) * self._std() * self.rng.standard_normal(3)
         jitter = np.array([self.cfg.jitter_m, self.cfg.jitter_m, 0.0]) * self.rng.standard_normal(3)
         err = self._error + jitter
@@ -128,10 +128,14 @@ class PoseSource:
         sp2 = self.cfg.noise_m ** 2 + self.cfg.jitter_m ** 2
         return np.diag([sp2, sp2, self.cfg.noise_heading_rad ** 2])
 
+    def _decay(self) -> float:
+        """The wander's correlation from one frame to the next, a = exp(-period / tau)."""
+        return math.exp(-self.cfg.period_s / self.cfg.noise_tau_s) if self.cfg.noise_tau_s > 0 else 0.0
+
     def _cov_step(self) -> np.ndarray:
         """The covariance of the error's change from one tick to the next: 2 sigma^2 (1 - a) of the
         wander and twice the jitter's."""
-        a = math.exp(-self.cfg.period_s / self.cfg.noise_tau_s) if self.cfg.noise_tau_s > 0 else 0.0
+        a = self._decay()
         sp2 = 2.0 * (1.0 - a) * self.cfg.noise_m ** 2 + 2.0 * self.cfg.jitter_m ** 2
         return np.diag([sp2, sp2, 2.0 * (1.0 - a) * self.cfg.noise_heading_rad ** 2])
 
