@@ -131,12 +131,16 @@ class Path:
         heading = h0 + t * _wrap(h1 - h0)
         norm = math.sqrt(dx * dx + dy * dy)
         tx, ty = dx / norm, dy / norm
-        along_extra = 0.0
+        along_extra, lateral = 0.0, tx * ey - ty * ex
         if (a == 0 and t == 0.0) or (a == n - 2 and t == 1.0):
             along_extra = ex * tx + ey * ty   # before the start / beyond the end
+        elif t == 0.0 or t == 1.0:
+            # outside a bend, the foot point is the vertex: the distance to it, signed by the side (its
+            # component along one segment's normal would jump where the nearer segment changes)
+            lateral = math.copysign(math.sqrt(ex * ex + ey * ey), lateral)
         return Projection(vertex=i, T_vertex_robot=_between(rows[i], x, y, th),
                           distance_m=self._s_list[a] + t * self._seg_list[a] + along_extra,
-                          lateral_m=tx * ey - ty * ex, heading_rad=_wrap(th - heading), segment=a)
+                          lateral_m=lateral, heading_rad=_wrap(th - heading), segment=a)
 
     def _segments(self, distance_m):
         """Arc length(s) clamped to the route and the index of the segment each lies on."""

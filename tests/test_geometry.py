@@ -100,9 +100,23 @@ def test_projection_agrees_with_se2_and_a_brute_force_foot_point():
         d = p.poses[a + 1, :2] - p.poses[a, :2]
         assert pr.segment == a
         e = T[:2] - p.poses[a, :2] - t * d
-        assert pr.lateral_m == pytest.approx((d[0] * e[1] - d[1] * e[0]) / np.linalg.norm(d), abs=1e-12)
+        normal = (d[0] * e[1] - d[1] * e[0]) / np.linalg.norm(d)
+        interior_vertex = t in (0.0, 1.0) and not (a == 0 and t == 0.0) and not (a == len(p) - 2 and t == 1.0)
+        assert pr.lateral_m == pytest.approx(math.copysign(np.linalg.norm(e), normal) if interior_vertex else normal,
+                                             abs=1e-12)
         if 0.0 < t < 1.0:
             assert pr.distance_m == pytest.approx(p.s[a] + t * p.segment_lengths[a], abs=1e-12)
+
+
+def test_lateral_error_is_continuous_outside_a_sharp_bend():
+    """Outside a bend of a wobbly taught route the foot point is the vertex for both of its segments; the
+    lateral error is the distance to it, whichever segment is nearer by a rounding error."""
+    p = Path("bend", np.array([(0.0, 0.0, 0.0), (0.25, 0.0, 0.0), (0.5, 0.0, -0.6), (0.65, -0.2, -0.9)]))
+    corner = np.array([0.5, 0.0])
+    lats = [p.project((*(corner + 0.2 * np.array([math.cos(b), math.sin(b)])), 0.0)).lateral_m
+            for b in np.linspace(math.pi / 2 - 0.9, math.pi / 2, 50)]     # sweep across the outside wedge
+    np.testing.assert_allclose(lats, 0.2, atol=1e-9)
+    assert p.project((0.4, -0.05, 0.0)).lateral_m < 0.0                 # inside the bend: the right side
 
 
 def test_relative_pose_is_fig_2_5():
