@@ -217,22 +217,3 @@ def test_a_slower_pass_adds_to_a_places_needs_and_one_as_fast_replaces_them():
     np.testing.assert_allclose(before.after(Place(np.array([1.0, 3.0]), 0.5)).needs, [4.0, 3.0])
     assert before.after(Place(np.array([1.0, 3.0]), 0.5)).speed_mps == 1.0
     assert before.after(Place(np.array([1.0, 3.0]), AS_FAST * 1.0)).needs.tolist() == [1.0, 3.0]
-
-
-def test_a_model_file_written_before_the_places_reads_with_none(tmp_path):
-    """A route taught under schema v2 keeps its identified model after the upgrade (no places)."""
-    import msgpack
-
-    from common.codec import encode
-    from services.controller.nominal_models import NominalModels, model_file
-    body = msgpack.unpackb(encode(nominal_model(PLACE_BIN_M, [3], [[2.0]], [1.0])))
-    for key in ("place_bin_m", "place_bins", "place_spread_factors", "place_speed_mps"):
-        del body[key]
-    body["v"] = 2
-    model_file(tmp_path, "p").write_bytes(msgpack.packb(body))
-    model = NominalModels("r1", 0.1, tmp_path).of("p")
-    assert model.place_bins == [] and model.spread_factors == [1.0] and model.model_tag == "m"
-    body["v"] = 1
-    model_file(tmp_path, "q").write_bytes(msgpack.packb(body))
-    with pytest.raises(ValueError, match="schema version 1"):
-        NominalModels("r1", 0.1, tmp_path).of("q")

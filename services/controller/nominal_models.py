@@ -5,13 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path as FsPath
 
-import msgpack
-
 from common.atomic_file import write_atomically
-from common.codec import VERSION_FIELD, DecodeError, decode, encode
+from common.codec import decode, encode
 from common.messages import BridgeStatus, LocState, NominalModel, Odometry, check_name
 from common.path import Path
-from services.controller.calibration import PLACE_BIN_M
 from services.controller.identification import TeachRecorder, identify
 
 
@@ -21,20 +18,6 @@ def model_file(directory: str | FsPath, path_id: str) -> FsPath:
 
 def save_model(directory: str | FsPath, model: NominalModel) -> FsPath:
     return write_atomically(model_file(directory, model.path_id), encode(model))
-
-
-def read_model(data: bytes) -> NominalModel:
-    """A model file. One written before the spread was identified by place (schema v2) reads with no
-    places: the route keeps its identified drive and prior rather than needing a new teach pass."""
-    try:
-        return decode(NominalModel, data)
-    except DecodeError:
-        body = msgpack.unpackb(data, raw=False)
-        if not isinstance(body, dict) or body.get(VERSION_FIELD) != 2:
-            raise
-        body.update({VERSION_FIELD: NominalModel.SCHEMA_VERSION, "place_bin_m": PLACE_BIN_M, "place_bins": [],
-                     "place_spread_factors": [], "place_speed_mps": []})
-        return decode(NominalModel, msgpack.packb(body, use_bin_type=True))
 
 
 class NominalModels:
@@ -80,5 +63,5 @@ class NominalModels:
         if path_id not in self._known and self.directory is not None:
             f = model_file(self.directory, path_id)
             if f.exists():
-                self._known[path_id] = read_model(f.read_bytes())
+                self._known[path_id] = decode(NominalModel, f.read_bytes())
         return self._known.get(path_id)
