@@ -217,8 +217,7 @@ class ControllerStatus(Message):
 class NominalModel(Message):
     """The controller's nominal model of one robot, identified from a teach pass (drive lags against
     the wheel odometry, the a-priori uncertainty from the model's residuals on that pass)."""
-    SCHEMA_VERSION = 3    # v2: curvature_rate_max_per_ms; v3: the spread factors by place
-    MAX_BYTES = 1 << 20   # a long rough route has many places (a query's reply, once per route)
+    SCHEMA_VERSION = 2    # v2: curvature_rate_max_per_ms
     stamp_s: float
     robot: str
     path_id: str                      # the teach pass it was identified on
@@ -243,10 +242,6 @@ class NominalModel(Message):
     prior_std_per_radps: tuple[float, float, float]
     prior_scale: tuple[float, float, float]          # of the default prior's shape, from the teach residuals
     spread_factors: list[float]       # per horizon step, on the predicted spread, to start the online check from
-    place_bin_m: float                # route distance per place of the factors below
-    place_bins: list[int]             # the places (route distance // place_bin_m) the teach pass widened ...
-    place_spread_factors: list[list[float]]   # ... and there, per horizon step, factors as spread_factors
-    place_speed_mps: list[float]              # ... and the teach pass's speed there
     residual_samples: int
     notes: list[str]                  # what could not be identified, and what was kept instead
 
@@ -258,9 +253,6 @@ class NominalModel(Message):
                                  *self.actuator_tau_s, self.curvature_rate_max_per_ms, *self.prior_std_base,
                                  *self.prior_std_per_mps, *self.prior_std_per_radps) < 0:
             raise ValueError("dt_s > 0 and non-negative time constants, dead times and prior std required")
-        if self.place_bin_m <= 0 or not len(self.place_bins) == len(self.place_spread_factors) == len(
-                self.place_speed_mps):
-            raise ValueError("place_bin_m > 0 and place_spread_factors and place_speed_mps for each of place_bins")
 
 
 @dataclass(frozen=True, kw_only=True)

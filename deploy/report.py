@@ -311,23 +311,13 @@ def _model_section(model: dict) -> list[str]:
                 model.get("curvature_rate_max_per_ms", 0.0),
             "a-priori std per period, base (m, m, rad)": model["prior_std_base"],
             "... per m/s": model["prior_std_per_mps"], "... per rad/s": model["prior_std_per_radps"],
-            "scale of the default prior, from the teach residuals": model["prior_scale"],
-            "places the teach pass widened the spread at (route m: factor 1 s ahead), widest first":
-                _widened_places(model)}
+            "scale of the default prior, from the teach residuals": model["prior_scale"]}
     rows.update({f"note {i + 1}": n for i, n in enumerate(model.get("notes") or [])})
     return ["<h2>Nominal model</h2><p class=cap>Identified by the controller on the teach pass: each drive "
             "channel's first-order lag, dead time, gain and acceleration limit against the wheel odometry (and an "
             "Ackermann robot's steering-rate limit, from its limits); the "
             "a-priori uncertainty scaled to the model's one-period residuals on that pass. Hand-set "
             "actuator_tau_s / prior_std_* in [controller.nmpc] override it.</p>", _kv_table(rows)]
-
-
-def _widened_places(model: dict, shown: int = 8) -> str:
-    bin_m, bins, factors = model.get("place_bin_m"), model.get("place_bins") or [], model.get("place_spread_factors")
-    step = max(0, round(1.0 / model.get("dt_s", 0.1)) - 1)
-    at_1s = [(f[min(step, len(f) - 1)], b) for b, f in zip(bins, factors or []) if f]
-    widest = sorted(at_1s, reverse=True)[:shown]
-    return ", ".join(f"{b * bin_m:.0f}-{(b + 1) * bin_m:.0f}: x{f:.1f}" for f, b in widest) or "none"
 
 
 def _learning_off_notes(trials: list[dict]) -> list[str]:

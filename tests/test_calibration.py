@@ -7,9 +7,7 @@ import numpy as np
 import pytest
 
 from common.path import Path
-from common.messages import NominalModel
-from services.controller.calibration import (AS_FAST, MARGIN, PLACE_BIN_M, WINDOW, Place, Prediction,
-                                             SpreadCalibration, teach_places)
+from services.controller.calibration import MARGIN, PLACE_BIN_M, WINDOW, Prediction, SpreadCalibration
 from services.controller.horizon_covariance import HorizonCovariance
 from services.controller.uncertainty import propagate, route_sigmas
 
@@ -119,14 +117,13 @@ def test_the_teach_factors_hold_until_a_window_is_seen_and_a_later_trial_continu
     assert len(nxt.recent[0]) == WINDOW
 
 
-def drive_pass(cal: SpreadCalibration, miss_at, step_m: float = 0.25, length_m: float = 100.0,
-               v_mps: float = 1.0) -> None:
+def drive_pass(cal: SpreadCalibration, miss_at, step_m: float = 0.25, length_m: float = 100.0) -> None:
     """One pass along a 100 m route, a one-step prediction every `step_m` made at its place with the
     factor the calibration gives there; `miss_at(s)`: the real error in model sigmas (0.01 m)."""
     for k, s in enumerate(np.arange(0.0, length_m, step_m)):
         kappa = float(cal.factors_at(s)[0])
         f = math.sqrt(kappa)
-        cal.predict(k, [Prediction(1, 0.0, 0.0, 0.01 * f, 0.01 * f, kappa, s_m=float(s), v_mps=v_mps)])
+        cal.predict(k, [Prediction(1, 0.0, 0.0, 0.01 * f, 0.01 * f, kappa, s_m=float(s))])
         cal.realize(k + 1, 0.01 * miss_at(s), 0.0, 0.0, 0.0)
 
 
@@ -182,38 +179,3 @@ def test_the_localizers_share_is_its_covariance_carried_along_the_plan():
                              np.zeros(15))
     cov = HorizonCovariance(var=None, Sigma0=P, dt=0.1, gamma=2.0, Sigma_loc=P, captured_xy=(0.0, 0.0))
     assert np.allclose(cov.localizer_part(X, np.zeros(15)), reference, rtol=0.02)
-
-
-def nominal_model(place_bin_m: float, bins: list[int], factors: list[list[float]], speeds: list[float]) -> NominalModel:
-    zeros = (0.0, 0.0, 0.0)
-    return NominalModel(stamp_s=0.0, robot="r1", path_id="p", dt_s=0.1, model_tag="m", tau_v_s=0.0, tau_w_s=0.0,
-                        dead_time_v_s=0.0, dead_time_w_s=0.0, gain_v=1.0, gain_w=1.0, rate_limit_v_mps2=None,
-                        rate_limit_w_radps2=None, fit_rmse_v_mps=0.0, fit_rmse_w_radps=0.0, samples_v=0, samples_w=0,
-                        actuator_tau_s=(0.0, 0.0), curvature_rate_max_per_ms=0.0, prior_std_base=zeros,
-                        prior_std_per_mps=zeros, prior_std_per_radps=zeros, prior_scale=(1.0, 1.0, 1.0),
-                        spread_factors=[1.0], place_bin_m=place_bin_m, place_bins=bins,
-                        place_spread_factors=factors, place_speed_mps=speeds, residual_samples=0, notes=[])
-
-
-def test_the_first_pass_remembers_the_places_the_teach_pass_widened():
-    """The teach pass's factors by place (standard deviations, two steps identified) are the first trial's
-    memory of the places passed before: squared, padded with 1 to the horizon, used near the place only,
-    and replaced by the first pass's own needs where it drives."""
-    model = nominal_model(PLACE_BIN_M, [20], [[2.0, 3.0]], [1.0])
-    cal = SpreadCalibration(horizon=3, places=teach_places(model, 3))
-    np.testing.assert_allclose(cal.factors_at(20 * PLACE_BIN_M + 0.5), [MARGIN * 4.0, MARGIN * 9.0, 1.0])
-    np.testing.assert_allclose(cal.factors_at(21 * PLACE_BIN_M + 0.5), [MARGIN * 4.0, MARGIN * 9.0, 1.0])
-    np.testing.assert_allclose(cal.factors_at(80.0), 1.0)
-    assert teach_places(nominal_model(2 * PLACE_BIN_M, [20], [[2.0, 3.0]], [1.0]), 3) == {}   # another bin size
-    slow = cal.continued()
-    drive_pass(cal, lambda s: 0.0, v_mps=0.5)      # calm, but slower than the teach pass: it cannot tell
-    np.testing.assert_allclose(cal.continued().factors_at(20 * PLACE_BIN_M + 0.5), [MARGIN * 4.0, MARGIN * 9.0, 1.0])
-    drive_pass(slow, lambda s: 0.0, v_mps=0.95)    # calm about as fast: the place is learned
-    np.testing.assert_allclose(slow.continued().factors_at(20 * PLACE_BIN_M + 0.5), 1.0)
-
-
-def test_a_slower_pass_adds_to_a_places_needs_and_one_as_fast_replaces_them():
-    before = Place(np.array([4.0, 2.0]), 1.0)
-    np.testing.assert_allclose(before.after(Place(np.array([1.0, 3.0]), 0.5)).needs, [4.0, 3.0])
-    assert before.after(Place(np.array([1.0, 3.0]), 0.5)).speed_mps == 1.0
-    assert before.after(Place(np.array([1.0, 3.0]), AS_FAST * 1.0)).needs.tolist() == [1.0, 3.0]

@@ -12,8 +12,7 @@ from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
 from services.controller.actuator import ActuatorLag
 from services.controller.identification import (DEFAULT_LEVEL, TeachRecorder, TeachResiduals, fit_channel,
-                                                identify, identify_drive, place_factors, scaled_prior,
-                                                teach_residuals)
+                                                identify, identify_drive, scaled_prior, teach_residuals)
 from services.controller.uncertainty import PriorStd
 from services.localizer.pose_source import PoseSourceSettings
 
@@ -116,31 +115,9 @@ def test_the_prior_is_scaled_to_the_residuals_spread():
     np.testing.assert_allclose(prior.per_mps, c * np.asarray(shape.per_mps), rtol=0.03)
 
 
-def residuals(G, U, step_var=0.0, decorrelated_var=0.0, s_m=None) -> TeachResiduals:
+def residuals(G, U, step_var=0.0, decorrelated_var=0.0) -> TeachResiduals:
     full = lambda v: np.broadcast_to(np.asarray(v, dtype=float), G.shape).copy()   # noqa: E731
-    return TeachResiduals(G, U, full(step_var), full(decorrelated_var),
-                          np.zeros(len(G)) if s_m is None else np.asarray(s_m, dtype=float))
-
-
-def test_the_teach_pass_widens_the_places_where_its_errors_outgrew_the_prior():
-    """A teach pass at 1 m/s, 0.1 m per residual, calm but for a steady heading push b per period over
-    20-26 m (a slope). Worked by hand: j residuals of it sum to j b against the prior's j sigma^2, so
-    the 3-sigma rule needs a factor j b^2 / (9 sigma^2) on sigma^2; sums that only start before the
-    push hold less of it, places away from it keep 1 (left out)."""
-    n, b = 500, 0.05
-    s = 0.1 * np.arange(n)
-    U = np.column_stack([np.ones(n), np.zeros(n)])
-    G = np.zeros((n, 3))
-    G[(s >= 20.0) & (s < 26.0), 2] = b
-    prior = PriorStd()
-    sigma = prior.base[2] + prior.per_mps[2]
-    places = place_factors(residuals(G, U, s_m=s), prior, steps=10, bin_m=2.0)
-    assert set(places) == {9, 10, 11, 12}          # 18-20 m: sums starting there reach the push
-    for j in (1, 4, 10):
-        assert places[11].needs[j - 1] == pytest.approx(j * b * b / (9 * sigma * sigma), rel=1e-9)
-    # from 18-20 m only the last sum (19.9 m on) reaches the push, with 9 of its 10 residuals; 1 step: none
-    assert places[9].needs[0] == 1.0 and places[9].needs[9] == pytest.approx((9 * b) ** 2 / (9 * 10 * sigma ** 2))
-    assert places[11].speed_mps == 1.0
+    return TeachResiduals(G, U, full(step_var), full(decorrelated_var))
 
 
 def test_the_localizers_step_noise_lowers_an_inflated_prior_to_the_default_level_at_most():

@@ -39,11 +39,8 @@ recent window forgets them by the time the robot is back: a trial that ended on 
 enter the next trial's rough patch, at a speed the calm window allows, with its spread unwidened. So
 each need is also kept by the place the prediction was made at (PLACE_BIN_M bins of the route's
 distance); near a place, kappa_j is at least MARGIN times the largest need of the latest pass over it
-(the neighbouring bins included). A pass about as fast as the one before there replaces its needs, so
-a model that has learned the place narrows the spread there one trial later; a slower pass only adds
-to them (calm at a crawl says nothing of the errors met at speed). The teach pass is the first pass: the
-first trial starts from its needs by place (identification.place_factors), so it enters a patch the
-teach pass found rough already widened, instead of learning of it there.
+(the neighbouring bins included). The latest pass replaces an earlier one's needs, so a model that has
+learned the place narrows the spread there one trial later.
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
@@ -54,13 +51,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import NominalModel
-
 WINDOW = 150             # predictions per horizon step remembered (15 s at 10 Hz)
 MARGIN = 1.1             # on the largest need: the next error is rarely exactly the worst seen
 MAX_SCALE = 400.0        # 20x the modelled standard deviation
 PLACE_BIN_M = 2.0        # route distance per place whose needs are remembered across trials
-AS_FAST = 0.9            # a pass at least this share of an earlier one's speed at a place replaces its needs
 
 
 @dataclass(frozen=True)
@@ -75,27 +69,11 @@ class Prediction:
     loc_sigma_lat_m: float = 0.0      # the localizer's share of the spread (not widened)
     loc_sigma_head_rad: float = 0.0
     s_m: float = math.nan             # where along the route it was made (NaN: remembered by no place)
-    v_mps: float = 0.0                # the speed commanded when it was made
-
-
-@dataclass(frozen=True)
-class Place:
-    """The needs per horizon step of one pass over a place, and the fastest it drove there."""
-    needs: np.ndarray
-    speed_mps: float
-
-    def after(self, later: "Place") -> "Place":
-        """What is remembered once `later` has passed too: its needs if it was about as fast; a slower
-        pass cannot tell that the errors this one met at speed are gone (a place found rough and then
-        crossed slowly and calmly would be entered at speed again, and be rough), so both are kept."""
-        if later.speed_mps >= AS_FAST * self.speed_mps:
-            return later
-        return Place(np.maximum(self.needs, later.needs), self.speed_mps)
 
 
 class SpreadCalibration:
     def __init__(self, horizon: int, scales: np.ndarray | None = None,
-                 recent: list[deque] | None = None, places: dict[int, Place] | None = None):
+                 recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None):
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -104,23 +82,22 @@ class SpreadCalibration:
         self.checked = np.zeros(horizon, dtype=int)
         self.outside = np.zeros(horizon, dtype=int)
         self._pending: dict[int, list[Prediction]] = {}
-        self.places_before = dict(places or {})      # place bin -> what the passes before left there
-        self.places_now: dict[int, Place] = {}       # the same, of this trial
+        self.places_before = dict(places or {})      # place bin -> needs per step, of the latest pass
+        self.places_now: dict[int, np.ndarray] = {}  # the same, of this trial
 
     def continued(self) -> "SpreadCalibration":
         """A calibration for the next trial on the same route and model: this one's recent needs and
-        its places after the earlier passes' (Place.after), no predictions pending, counts from zero."""
-        places = dict(self.places_before)
-        for b, now in self.places_now.items():
-            places[b] = places[b].after(now) if b in places else now
-        return SpreadCalibration(len(self.recent), self.scales, self.recent, places)
+        its needs by place (over the earlier passes' where it did not pass), no predictions pending,
+        counts from zero."""
+        return SpreadCalibration(len(self.recent), self.scales, self.recent,
+                                 {**self.places_before, **self.places_now})
 
     def factors_at(self, s_m: float | None) -> np.ndarray:
         """kappa_j for a prediction made at route distance `s_m` (None: the recent window's alone)."""
         if s_m is None or not math.isfinite(s_m) or not self.places_before:
             return self.scales.copy()
         b = math.floor(s_m / PLACE_BIN_M)
-        near = [self.places_before[i].needs for i in (b - 1, b, b + 1) if i in self.places_before]
+        near = [self.places_before[i] for i in (b - 1, b, b + 1) if i in self.places_before]
         if not near:
             return self.scales.copy()
         worst = np.max(near, axis=0)
@@ -153,12 +130,8 @@ class SpreadCalibration:
         j = p.step - 1
         if not math.isfinite(p.s_m) or j >= len(self.scales):
             return
-        b = math.floor(p.s_m / PLACE_BIN_M)
-        place = self.places_now.get(b)
-        if place is None or abs(p.v_mps) > place.speed_mps:
-            place = self.places_now[b] = Place(np.ones(len(self.scales)) if place is None else place.needs,
-                                               abs(p.v_mps))
-        place.needs[j] = max(place.needs[j], need)
+        needs = self.places_now.setdefault(math.floor(p.s_m / PLACE_BIN_M), np.ones(len(self.scales)))
+        needs[j] = max(needs[j], need)
 
     def _update(self, j: int, z: float, need: float) -> float:
         if j >= len(self.scales):
@@ -180,21 +153,6 @@ class SpreadCalibration:
         """sqrt(kappa_j): what each step's predicted standard deviations are multiplied by, at route
         distance `s_m`."""
         return tuple(float(x) for x in np.sqrt(self.factors_at(s_m)))
-
-
-def teach_places(model: NominalModel, horizon: int) -> dict[int, Place]:
-    """The teach pass's needs by place (NominalModel.place_spread_factors, standard deviations) as the
-    first trial's memory of the places passed before: variance factors of `horizon` steps (1 beyond the
-    identified ones); none if the model's places are not this check's."""
-    if not model.place_bins or not math.isclose(model.place_bin_m, PLACE_BIN_M):
-        return {}
-    out = {}
-    for b, f, v in zip(model.place_bins, model.place_spread_factors, model.place_speed_mps):
-        need = np.ones(horizon)
-        n = min(horizon, len(f))
-        need[:n] = np.square(np.asarray(f[:n], dtype=float))
-        out[int(b)] = Place(need, float(v))
-    return out
 
 
 def _need(err: float, var_estimate: float, sigma_loc: float, sigma: float, scale: float) -> float:

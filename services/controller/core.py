@@ -67,5 +67,5 @@ class ControllerCore:
                 if j < len(unc.horizon_loc_sigma_lat_m) else (0.0, 0.0)
             predictions.append(Prediction(j + 1, pr.lateral_m, pr.heading_rad, unc.horizon_sigma_lat_m[j],
                                           unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0,
-                                          *loc, s_m=d.distance_m, v_mps=d.v_mps))
+                                          *loc, s_m=d.distance_m))
         self.calibration.predict(tick, predictions)

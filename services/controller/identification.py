@@ -55,7 +55,6 @@ from scipy.optimize import least_squares
 from common.messages import LocState, NominalModel
 from common.path import Path
 from services.controller.actuator import ActuatorLag
-from services.controller.calibration import MAX_SCALE, PLACE_BIN_M, Place
 from services.controller.experience import ExperienceBuilder
 from services.controller.uncertainty import PriorStd
 
@@ -280,7 +279,6 @@ class TeachResiduals:
     u: np.ndarray                   # (m, 2)
     step_var: np.ndarray            # (m, 3)
     decorrelated_var: np.ndarray    # (m, 3)
-    s_m: np.ndarray                 # (m,) route distance of the estimate that completed each residual
 
     def __len__(self) -> int:
         return len(self.g)
@@ -300,7 +298,7 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
     """The nominal model's one-period residuals on the teach pass from the teach estimates (made
     relative to the taught route), with the localizer's share of them."""
     builder = ExperienceBuilder(path, rec.dt, lag=lag)
-    G, U, step, decorrelated, where = [], [], [], [], []
+    G, U, step, decorrelated = [], [], [], []
     for tick in sorted(rec.estimates):
         loc = rec.estimates[tick]
         if loc.vertex >= len(path):
@@ -312,15 +310,13 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
         if obs is not None:
             G.append(obs.g)
             U.append(obs.a[5:7])
-            where.append(path.s[loc.vertex] + loc.T_vertex_robot[0])
             before = rec.estimates.get(tick - 1)
             known = loc.cov_step_T_vertex_robot is not None and before is not None
             step.append(_body_variance(loc, loc.cov_step_T_vertex_robot) if known else np.zeros(3))
             decorrelated.append(_body_variance(loc, loc.cov_T_vertex_robot) + _body_variance(before, before.cov_T_vertex_robot)
                                 if known else np.zeros(3))
     as_array = lambda rows, n: np.array(rows, dtype=float).reshape(-1, n)   # noqa: E731
-    return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3),
-                          np.array(where, dtype=float))
+    return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3))
 
 
 def _body_variance(loc: LocState, cov: tuple[float, ...] | None) -> np.ndarray:
@@ -385,30 +381,6 @@ def horizon_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZ
     return out
 
 
-def place_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZON,
-                  bin_m: float = PLACE_BIN_M) -> dict[int, Place]:
-    """Per place (route distance // bin_m) the teach pass drove through with errors beyond the prior's
-    spread, the factor per horizon step on the prior's variance that held them there, and the teach
-    speed there: the online check's need (calibration.py, its 3-sigma rule) for the sums of j residuals
-    that start at that place. A rough patch or a slope shows in the teach pass already, so trial 1 enters it with its spread
-    widened instead of learning of it there (places the teach pass crossed calmly are left out: 1)."""
-    var = prior.std(res.u) ** 2
-    places = np.maximum(np.floor(res.s_m / bin_m), 0).astype(int)     # (just before the start: the first)
-    table = np.ones((int(places.max(initial=0)) + 1, steps))
-    for j in range(1, min(steps, len(res)) + 1):
-        kernel = np.ones(j)
-        noise = res.noise_over(j)
-        need = np.ones(len(res) - j + 1)
-        for i in (1, 2):
-            err = np.convolve(res.g[:, i], kernel, "valid")
-            model = np.maximum(np.convolve(var[:, i], kernel, "valid"), 1e-18)
-            need = np.maximum(need, (err * err / 9.0 - noise[:, i]) / model)
-        np.maximum.at(table[:, j - 1], places[:len(need)], np.minimum(need, MAX_SCALE))
-    speed = np.zeros(len(table))
-    np.maximum.at(speed, places, np.abs(res.u[:, 0]))
-    return {int(b): Place(table[b], float(speed[b])) for b in np.flatnonzero((table > 1.0).any(axis=1))}
-
-
 def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd(),
              curvature_rate_max_per_ms: float = 0.0) -> NominalModel:
     """The nominal model of the robot that drove this teach pass, as the controller will use it. An
@@ -422,11 +394,10 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
     if len(res) >= MIN_SAMPLES:
         prior, scale = scaled_prior(res, shape)
         factors = horizon_factors(res, prior)
-        places = place_factors(res, prior)
         if not res.step_var.any():
             notes.append("the localizer does not report its step covariance: its noise counts as the model's")
     else:
-        prior, scale, factors, places = shape, np.ones(3), np.ones(MAX_HORIZON), {}
+        prior, scale, factors = shape, np.ones(3), np.ones(MAX_HORIZON)
         notes.append(f"only {len(res)} teach residuals (no teach pose estimates?): the default prior is kept")
     fit = lambda c, attr, default: getattr(c, attr) if c is not None else default   # noqa: E731
     return NominalModel(
@@ -441,7 +412,4 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), curvature_rate_max_per_ms=lag.curvature_rate_max_per_ms,
         prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
         prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
-        spread_factors=[float(f) for f in factors], place_bin_m=PLACE_BIN_M, place_bins=sorted(places),
-        place_spread_factors=[[float(f) for f in np.sqrt(places[b].needs)] for b in sorted(places)],
-        place_speed_mps=[places[b].speed_mps for b in sorted(places)],
-        residual_samples=len(res), notes=notes)
+        spread_factors=[float(f) for f in factors], residual_samples=len(res), notes=notes)
