@@ -584,15 +584,13 @@ def test_rc_lb_nmpc_takes_the_learned_crab_at_the_speeds_it_slows_down_to():
     np.testing.assert_allclose(step.nlp.problem.ref.head_offset[:-1], np.clip(expected, -0.2, 0.2), atol=3e-3)
 
 
-@pytest.mark.xfail(strict=True, reason="RC-LB-NMPC at a crawl turns on the spot for a few mm of band (issue 18, "
-                                       "docs/results.md stop 40); the fix should make this pass")
 def test_a_crawl_near_the_corridors_edge_steers_back_without_turning_on_the_spot():
     """Stop 40's self-stops, reduced to one step: a 5 cm corridor (thesis 7.4.3), the robot 1.3 cm off the
     route at the ladder's bottom rung, the calibration's factors 3x beyond the first step (measured 5-7x
     in that experiment). The band beyond the first step is then 1 cm, narrower than the offset, which no
-    plan at 0.12 m/s can close within the horizon; the slack price makes the SQP spin at the drive's
-    1.2 rad/s limit for 3 mm, and the next step's heading spread stops the robot. A path follower
-    steers such an offset back at a fraction of that."""
+    plan at 0.12 m/s can close within the horizon; the slack price made the SQP spin at the drive's
+    1.2 rad/s limit for 3 mm, and the next step's heading spread stopped the robot. A path follower
+    steers such an offset back at a fraction of that (band_reach.py)."""
     th = np.zeros(200)
     path = Path("line", np.column_stack([np.cumsum(0.25 * np.column_stack([np.cos(th), np.sin(th)]), axis=0), th]))
     ctx = ctx_for(path, path.pose_at(10.0) + np.array([0.0, 0.013, 0.0]), v=1.0,

@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from services.controller.band_reach import reach_capped, start_errors
 from services.controller.corridor import Corridor
 from services.controller.corridor_sqp import CorridorNLP, CorridorResult, Iterate, solve_corridor
 from services.controller.horizon import HorizonProblem
@@ -166,6 +167,10 @@ class RCLBNMPCLaw:
             problem = problem.with_head_offset(crab_offsets(gp, ref.s_m, ref.poses, ref.direction_rad, v,
                                                             v * ref.kappa, dt))
         sig = rung.sig if rung is not None else np.zeros((base.K, 3))
+        if rung is not None:
+            cap = reach_capped(cap, start_errors(problem), problem.effective(v)[0], np.array(
+                [ctx.w_limit_at(max(x, s.v_min_mps)) for x in v.tolist()]), dt, lo_lat, hi_lat, head_lim,
+                self.alpha * sig[:, 2])
         nlp = CorridorNLP(problem, lo_lat, hi_lat, head_lim, cap, self.alpha, sig, np.zeros((base.K, base.K)), v,
                           v_max, ctx.w_limit_at)
         start = nlp.evaluate(v, w, A)
