@@ -21,7 +21,6 @@ from services.controller.horizon_covariance import HorizonCovariance
 
 SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)   # shares of the scheduled speeds
 TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's turn-rate limit
-LADDER_TIE = 0.1         # where no rung fits, rungs within this share of the best fit count as good as it
 
 
 @dataclass(frozen=True)
@@ -57,36 +56,18 @@ def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: H
     return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig, loc), loc)
 
 
-def _excess(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> float:
-    """How far the rung is from fitting: the largest share of its cap that alpha * sigma (beyond the first
-    step) or a turn rate (of its headroom) takes; <= 1 fits."""
-    t = alpha * rung.sig[1:]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.nan_to_num(t[:, 1:] / cap[1:, 1:], nan=0.0, posinf=np.inf)
-    return max(float(share.max(initial=0.0)), float(np.abs(rung.w).max(initial=0.0)) / (TURN_HEADROOM * w_rate_cap))
-
-
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
                          cap: np.ndarray, alpha: float, w_rate_cap: float, last_index: int | None,
                          a_out: np.ndarray) -> Rung:
-    """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits.
-    Where none fits, the fastest of those that come within LADDER_TIE of the best: at a crawl the spread
-    is the localizer's and the model's speed-free part, and on a slope whose slide grows as the robot
-    slows a slower rung is worse; crawling there only prolongs the exposure. `cap` (K, 3): the most
-    alpha * sigma may take of the corridor; `w_rate_cap`: the drive's turn-rate limit at any speed.
-    `a_out` (K, 9) receives the chosen rung's GP inputs."""
+    """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits
+    (or the bottom rung). `cap` (K, 3): the most alpha * sigma may take of the corridor; `w_rate_cap`:
+    the drive's turn-rate limit at any speed. `a_out` (K, 9) receives the chosen rung's GP inputs."""
     k = 0 if last_index is None else max(last_index - 1, 0)
-    tried: list[tuple[Rung, float, np.ndarray]] = []
     while True:
         rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps)
-        excess = _excess(rung, cap, alpha, w_rate_cap)
-        if excess <= 1.0:
+        t = alpha * rung.sig[1:]
+        fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])
+                    and np.all(np.abs(rung.w) <= TURN_HEADROOM * w_rate_cap))
+        if fits or k + 1 == len(SPEED_LADDER):
             return rung
-        tried.append((rung, excess, a_out.copy()))
-        if k + 1 == len(SPEED_LADDER):
-            break
         k += 1
-    best = min(e for _, e, _ in tried)
-    chosen, _, a = next(t for t in tried if t[1] <= best * (1.0 + LADDER_TIE))
-    a_out[:] = a
-    return chosen
