@@ -9,6 +9,10 @@ checks as it is), the tightening is capped again: the mean must be able to reach
 correction: turning back along a curvature of at most `REACH_CURVATURE` (and `REACH_SHARE` of the drive's
 turn-rate limit) to at most `REACH_SHARE` of the heading band, as a path follower would. Where the mean
 can reach the band so, nothing changes; where it cannot, the band starts where that correction takes it.
+
+Only while the first step's own alpha-sigma region fits: a robot already that close to an edge (a slope
+pushing it out, say) is in trouble, and everything that shrinks the exposure (slowing to a crawl,
+correcting at any cost) is what the slack price should buy.
 """
 from __future__ import annotations
 
@@ -30,11 +34,15 @@ def start_errors(problem) -> tuple[float, float]:
 
 
 def reach_capped(cap: np.ndarray, start: tuple[float, float], v_eff: np.ndarray, w_lim: np.ndarray, dt: float,
-                 lo_lat: np.ndarray, hi_lat: np.ndarray, head_lim: np.ndarray, t_head: np.ndarray) -> np.ndarray:
+                 lo_lat: np.ndarray, hi_lat: np.ndarray, head_lim: np.ndarray, t: np.ndarray) -> np.ndarray:
     """`cap` (K, 3) lowered at x_2..x_K so that the correction from `start` (lateral, heading) reaches
-    the band: v_eff (K,) the speeds moved at, w_lim (K,) the drive's |w| bounds at them,
-    t_head (K,) the heading tightening the plan would get."""
+    the band: v_eff (K,) the speeds moved at, w_lim (K,) the drive's |w| bounds at them, t (K, 3) the
+    tightening alpha * sigma the plan would get. Unchanged where the first step's region does not fit."""
     e0, h0 = start
+    e1 = e0 + dt * v_eff[0] * math.sin(h0)
+    if not (lo_lat[0] + t[0, 1] <= e1 <= hi_lat[0] - t[0, 1] and abs(h0) + t[0, 2] <= head_lim[0]):
+        return cap
+    t_head = t[:, 2]
     rate = np.minimum(REACH_SHARE * w_lim, REACH_CURVATURE * v_eff)
     turned = dt * np.concatenate([[0.0], np.cumsum(rate[:-1])])   # by the start of each period
     out = cap.copy()

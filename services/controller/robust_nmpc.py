@@ -170,7 +170,7 @@ class RCLBNMPCLaw:
         if rung is not None:
             cap = reach_capped(cap, start_errors(problem), problem.effective(v)[0], np.array(
                 [ctx.w_limit_at(max(x, s.v_min_mps)) for x in v.tolist()]), dt, lo_lat, hi_lat, head_lim,
-                self.alpha * sig[:, 2])
+                self.alpha * sig)
         nlp = CorridorNLP(problem, lo_lat, hi_lat, head_lim, cap, self.alpha, sig, np.zeros((base.K, base.K)), v,
                           v_max, ctx.w_limit_at)
         start = nlp.evaluate(v, w, A)
