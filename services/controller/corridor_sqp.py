@@ -97,6 +97,7 @@ class CorridorNLP:
     v_start: np.ndarray
     v_max: np.ndarray         # (K,) never above the desired speeds (nor the speed cap's)
     w_limit_at: Callable[[float], float]   # |w| bound at a speed (actuator, Ackermann steering)
+    sig_floor: np.ndarray | None = None    # (K,) the least lateral sigma at any speed (the localizer's share)
 
     def w_limits(self, v: np.ndarray) -> np.ndarray:
         v_min = self.problem.s.v_min_mps
@@ -110,7 +111,10 @@ class CorridorNLP:
     def evaluate(self, v: np.ndarray, w: np.ndarray, a_out: np.ndarray | None = None) -> Iterate:
         ref, X, E, dE, r, J = constrained_residual(self.problem, v, w, a_out)
         sig = self.sig_start.copy()
-        sig[:, 1] = np.maximum(self.sig_start[:, 1] + self.dsig_v @ (v - self.v_start), 0.0)
+        # first order in the speeds, never below what slowing down cannot remove: far below the starting
+        # speeds the line would reach zero, and a crawl would look free of uncertainty
+        floor = 0.0 if self.sig_floor is None else self.sig_floor
+        sig[:, 1] = np.maximum(self.sig_start[:, 1] + self.dsig_v @ (v - self.v_start), floor)
         t, _ = self.tighten(sig)
         viol = (np.maximum(E[:, 1] + t[:, 1] - self.hi_lat, 0) + np.maximum(self.lo_lat - E[:, 1] + t[:, 1], 0)
                 + np.maximum(np.abs(E[:, 2]) + t[:, 2] - self.head_lim, 0))
@@ -124,6 +128,8 @@ class CorridorNLP:
         lo_d = np.concatenate([np.maximum(s.v_min_mps - it.v, -trust_v), np.maximum(-w_lim - it.w, -trust_w)])
         hi_d = np.concatenate([np.minimum(self.v_max - it.v, trust_v), np.minimum(w_lim - it.w, trust_w)])
         tight, free = self.tighten(it.sig)
+        if self.sig_floor is not None:
+            free &= it.sig[:, 1] > self.sig_floor
         dx, _ = qp.solve(it.r, it.J, it.E, it.dE, tight, self.alpha * self.dsig_v * free[:, None],
                          self.lo_lat, self.hi_lat, self.head_lim, lo_d, np.maximum(hi_d, lo_d))
         return dx

@@ -178,7 +178,8 @@ class RCLBNMPCLaw:
             return LawResult(0.0, v_mps=0.0, predicted=start.X[1:], stop_reason=reason,
                              uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
         if rung is not None:
-            nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A))
+            nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
+                                      sig_floor=np.minimum(rung.sig_loc[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
         return self._report(nlp, start, result, gp is not None, rung)
 
