@@ -600,3 +600,20 @@ def test_a_crawl_near_the_corridors_edge_steers_back_without_turning_on_the_spot
     out = [law.angular(ctx) for _ in range(4)]
     assert all(not o.stop_reason and o.v_mps <= 0.2 for o in out)          # crawling, as in the experiment
     assert max(abs(o.w_radps) for o in out) < 0.3, [o.w_radps for o in out]
+
+
+def test_the_sqps_lateral_sigma_never_falls_below_the_localizers_share_at_a_crawl():
+    """Within a solve the lateral sigma follows the speeds to first order; far below the starting speeds
+    that line would reach zero (MATS s565064067, stop 41: sigma 0 at steps 4-10 while crawling) and the
+    band would open to the whole corridor. Slowing down cannot remove the localizer's share."""
+    th = np.zeros(200)
+    path = Path("line", np.column_stack([np.cumsum(0.25 * np.column_stack([np.cos(th), np.sin(th)]), axis=0), th]))
+    ctx = ctx_for(path, path.pose_at(10.0), v=1.0, corridor=Corridor(path.s, 0.3, math.radians(15)),
+                  cov=np.diag([4e-4, 4e-4, 1e-4]))
+    law = RCLBNMPCLaw(NMPCSettings(), DT)
+    law.angular(ctx)
+    nlp = law.last_step.nlp
+    assert np.all(nlp.sig_floor > 0) and np.all(nlp.sig_floor <= nlp.sig_start[:, 1])
+    steep = dataclasses.replace(nlp, dsig_v=np.eye(len(nlp.v_start)) * 10.0)    # a line that reaches zero
+    it = steep.evaluate(np.full(len(nlp.v_start), nlp.problem.s.v_min_mps), np.zeros(len(nlp.v_start)))
+    np.testing.assert_array_equal(it.sig[:, 1], nlp.sig_floor)

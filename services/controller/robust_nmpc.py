@@ -17,8 +17,9 @@ by alpha * sigma (corridor_sqp.py; alpha = 0 is C-LB-NMPC). RC first caps the sp
 of a ladder of slowed-down profiles whose 3-sigma region fits the corridor (speed_ladder.py).
 Violating a tightened limit is possible only through a slack with a heavy L1 price, so the QP is always
 feasible and the law says when it had to use it; beyond the first step the band is no narrower than a
-path follower's correction can reach (band_reach.py), so that price does not buy a spin at a crawl. When even the first predicted step's 3-sigma region
-does not fit inside the corridor, or the robot is already outside it, the law stops the robot and says why.
+path follower's correction can reach (band_reach.py), so that price does not buy a spin at a crawl.
+When even the first predicted step's 3-sigma region does not fit inside the corridor, or the robot is
+already outside it, the law stops the robot and says why.
 """
 from __future__ import annotations
 
