@@ -42,7 +42,6 @@ def reach_capped(cap: np.ndarray, start: tuple[float, float], v_eff: np.ndarray,
     e1 = e0 + dt * v_eff[0] * math.sin(h0)
     if not (lo_lat[0] + t[0, 1] <= e1 <= hi_lat[0] - t[0, 1] and abs(h0) + t[0, 2] <= head_lim[0]):
         return cap
-    t_head = t[:, 2]
     rate = np.minimum(REACH_SHARE * w_lim, REACH_CURVATURE * v_eff)
     turned = dt * np.concatenate([[0.0], np.cumsum(rate[:-1])])   # by the start of each period
     out = cap.copy()
@@ -50,7 +49,7 @@ def reach_capped(cap: np.ndarray, start: tuple[float, float], v_eff: np.ndarray,
     least_head = np.maximum(abs(h0) - dt * np.cumsum(rate), 0.0)
     out[1:, 2] = np.minimum(cap[1:, 2], np.maximum(head_lim[1:] - least_head[1:], 0.0))
     # lateral: headings of each period turned towards either side, inside a share of the heading band
-    band = REACH_SHARE * np.maximum(head_lim - np.minimum(t_head, out[:, 2]), 0.0)
+    band = REACH_SHARE * np.maximum(head_lim - np.minimum(t[:, 2], out[:, 2]), 0.0)
     band = np.concatenate([[abs(h0)], band[:-1]])     # period i starts at x_i's heading (x_0: the robot's)
     down = np.maximum(h0 - turned, np.minimum(h0, -band))
     up = np.minimum(h0 + turned, np.maximum(h0, band))

@@ -169,12 +169,12 @@ class RCLBNMPCLaw:
             problem = problem.with_head_offset(crab_offsets(gp, ref.s_m, ref.poses, ref.direction_rad, v,
                                                             v * ref.kappa, dt))
         sig = rung.sig if rung is not None else np.zeros((base.K, 3))
-        if rung is not None:
-            cap = reach_capped(cap, start_errors(problem), problem.effective(v)[0], np.array(
-                [ctx.w_limit_at(max(x, s.v_min_mps)) for x in v.tolist()]), dt, lo_lat, hi_lat, head_lim,
-                self.alpha * sig)
         nlp = CorridorNLP(problem, lo_lat, hi_lat, head_lim, cap, self.alpha, sig, np.zeros((base.K, base.K)), v,
                           v_max, ctx.w_limit_at)
+        if rung is not None:
+            nlp = dataclasses.replace(nlp, cap=reach_capped(cap, start_errors(problem), problem.effective(v)[0],
+                                                            nlp.w_limits(v), dt, lo_lat, hi_lat, head_lim,
+                                                            self.alpha * sig))
         start = nlp.evaluate(v, w, A)
         if rung is not None and (reason := self._uncertainty_too_wide(nlp)):
             return LawResult(0.0, v_mps=0.0, predicted=start.X[1:], stop_reason=reason,
