@@ -284,6 +284,12 @@ class _Dim:
         self.alpha_aug = np.column_stack([self.alpha, self.alpha[:, None] * Xc])
 
 
+def _capped_hyper(h: SEHyper, dims: tuple[int, ...], caps: tuple[float, ...]) -> SEHyper:
+    ell = np.array(h.lengthscales, dtype=float)
+    ell[list(dims)] = np.minimum(ell[list(dims)], caps)
+    return SEHyper(ell, h.signal_std, h.noise_std)
+
+
 class GaussianProcess:
     """Exact GP regression, one independent GP per output dimension sharing the inputs (eq. 5.21).
     Zero prior mean: with no data the mean is 0 and the variance the prior sigma_f^2.
@@ -307,11 +313,23 @@ class GaussianProcess:
         self.d = len(hypers)
         self.n = len(X)
         self.hypers = hypers
+        self._X, self._Y = X, Y
+        self._capped: dict[tuple, GaussianProcess] = {}
         self.center = X.mean(axis=0) if self.n else np.zeros(p)
         Xc = np.ascontiguousarray(X - self.center)
         self._Xc1 = np.column_stack([np.ones(self.n), Xc])   # [1, x]: sum and first moment in one product
         self._dims = [_Dim(Xc, np.ascontiguousarray(Y[:, j]), h) for j, h in enumerate(hypers)]
         self._stack = None
+
+    def capped(self, dims: tuple[int, ...], caps: tuple[float, ...]) -> GaussianProcess:
+        """The same data and signal and noise levels, with no lengthscale of input dims[i] longer than
+        caps[i] (built once per GP; itself where none is longer)."""
+        key = (tuple(dims), tuple(caps))
+        if key not in self._capped:
+            hypers = [_capped_hyper(h, dims, caps) for h in self.hypers]
+            same = all(np.array_equal(a.lengthscales, h.lengthscales) for a, h in zip(hypers, self.hypers))
+            self._capped[key] = self if same else GaussianProcess(self._X, self._Y, hypers)
+        return self._capped[key]
 
     def mean_terms(self) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, float, np.ndarray]]]:
         """(center, centred inputs (N, p), per output (1/lengthscales, sigma_f^2, alpha)): the posterior

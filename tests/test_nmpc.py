@@ -252,13 +252,15 @@ TEACH_CRAB = -0.16          # rad: the heading the route was taught with, agains
 SLIDE = 0.006               # m per period, to the robot's left: what the learned model has seen
 
 
-def slide_model():
-    """A GP that has seen a constant sideways slide everywhere near the route (body frame, as g is)."""
+def slide_model(n: int = 1200):
+    """A GP that has seen a constant sideways slide everywhere near the route (body frame, as g is),
+    densely enough along the route and in commanded speed and turn rate for its variance to be its
+    own there (uncertainty.VOUCH_SCALES)."""
     rng = np.random.default_rng(4)
     lo = np.array([0.0, -0.3, -0.4, 0.3, -0.5, 0.3, -0.5, 0.3, -0.5])
     hi = np.array([30.0, 0.3, 0.4, 1.5, 0.5, 1.5, 0.5, 1.5, 0.5])
-    X = lo + (hi - lo) * rng.uniform(size=(300, 9))
-    Y = np.tile([0.0, SLIDE, 0.0], (300, 1)) + 1e-5 * rng.normal(size=(300, 3))
+    X = lo + (hi - lo) * rng.uniform(size=(n, 9))
+    Y = np.tile([0.0, SLIDE, 0.0], (n, 1)) + 1e-5 * rng.normal(size=(n, 3))
     h = SEHyper(np.array([20.0, 2.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0]), 0.01, 1e-4)
     return GaussianProcess(X, Y, [h] * 3)
 

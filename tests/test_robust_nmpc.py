@@ -22,7 +22,7 @@ from services.controller.settings import NMPCSettings
 from services.controller.speed_ladder import fastest_fitting_rung
 from services.controller.minmax import SIGNS
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
-from services.controller.uncertainty import (DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
+from services.controller.uncertainty import (VOUCH_DIMS, VOUCH_SCALES, DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
                                              route_sigmas, sigma_point_step, variance_speed_derivatives)
 
 DT = 0.1
@@ -217,13 +217,49 @@ def test_disturbance_variance_learns_a_disturbance_the_data_show_to_be_small_but
     assert np.allclose(DisturbanceVariance(None, prior, tuple(floor))(query(0.5, 0.4))[0],
                        prior_var(0.5, 0.4) + floor ** 2)
     near = var(query(0.5, 0.4))[0] - floor ** 2
-    latent = gp.predict(query(0.5, 0.4))[1][0]
+    latent = gp.capped(VOUCH_DIMS, VOUCH_SCALES).predict(query(0.5, 0.4))[1][0]
     assert latent[1] / 4e-8 > 0.5                            # the share rule alone keeps most of the prior
     assert near[1] < 0.01 * prior_var(0.5, 0.4)[1]
     assert np.all(near <= np.minimum(latent / np.array([h.signal_std ** 2 for h in hypers]), 1) * prior_var(0.5, 0.4)
                   + 1e-12)                                   # never above what the share rule gave
     far = var(query(1.0, 1.0))[0] - floor ** 2
     assert np.all(far >= 0.9 * prior_var(1.0, 1.0)), far / prior_var(1.0, 1.0)
+
+
+def test_a_few_experiences_at_one_speed_do_not_vouch_for_another_speed_or_a_corner():
+    """Grizzly s693184380 (stop 42): at the start of trial 2 the window held the trial's own first
+    experiences, a dozen on a straight at 0.87 m/s; with the hyperparameters fitted on trial 1 (one speed:
+    lengthscales of 15 m/s and more on the speeds) they made the GP sure of a corner at 1.8 m/s, the ladder
+    went there, and the robot, short of turn rate, swung off and stopped itself in trials 2-5. Where the
+    GP has seen the inputs the variance stays its own; at another speed or turn rate it is the prior's."""
+    rng = np.random.default_rng(7)
+    n = 12
+    A = np.zeros((n, 9))
+    A[:, 0] = np.linspace(3.0, 4.1, n)                        # the last 1.1 m of the straight
+    A[:, [3, 5, 7]] = 0.874 + 0.01 * rng.normal(size=(n, 1))
+    A[:, [4, 6, 8]] = 0.1 + 0.01 * rng.normal(size=(n, 1))
+    G = 0.003 * rng.normal(size=(n, 3))
+    ell = np.array([22.6, 1.0, 1.0, 15.5, 1.12, 3928.0, 9.81, 8.6, 4.05])   # the fit's, heading dim
+    hypers = [SEHyper(ell, 0.0392, 0.0028)] * 3
+    gp = GaussianProcess(A, G, hypers)
+    prior = PriorStd(base=(0.001, 0.002, 0.003), per_mps=(0.004, 0.008, 0.008), per_radps=(0.002, 0.004, 0.015))
+    var = DisturbanceVariance(gp, prior, (0.0, 0.0, 0.0))
+
+    def query(s, v, w):
+        a = np.zeros((1, 9))
+        a[0, 0], a[0, [3, 5, 7]], a[0, [4, 6, 8]] = s, v, w
+        return a
+
+    def prior_var(v, w):
+        return (np.array(prior.base) + v * np.array(prior.per_mps) + w * np.array(prior.per_radps)) ** 2
+
+    corner = query(6.0, 1.8, 0.6)
+    own_metric = gp.predict(corner)[1][0] / 0.0392 ** 2
+    assert np.all(own_metric < 0.25)                          # what the fitted metric claims: known
+    assert np.all(var(corner)[0] >= 0.95 * prior_var(1.8, 0.6))
+    assert np.all(var(query(4.0, 1.8, 0.1))[0] >= 0.95 * prior_var(1.8, 0.1))      # same place, 2x the speed
+    assert np.all(var(query(6.0, 0.874, 0.6))[0] >= 0.8 * prior_var(0.874, 0.6))  # its speed, a new turn rate
+    assert np.all(var(query(3.5, 0.874, 0.1))[0] <= 0.05 * prior_var(0.874, 0.1))  # where it drove
 
 
 def test_lateral_sigma_speed_jacobian_with_a_drive_lag_matches_finite_differences():

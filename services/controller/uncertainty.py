@@ -11,7 +11,11 @@ The a-priori uncertainty of the unicycle model per control period is `PriorStd` 
 and turn rate); it is the variance before any experience (trial 1, or a speed never driven there). With
 a GP, the variance is that prior scaled by the share of the GP's prior variance its (latent) posterior
 keeps, or, near the experiences (in the GP's own metric), the posterior variance itself where it is
-smaller; plus a small `process_std` floor for what never repeats. The measurement noise sigma_n, mostly
+smaller; plus a small `process_std` floor for what never repeats. That metric's lengthscales are capped
+along the route, in commanded speed and in commanded turn rate (`VOUCH_DIMS`, `VOUCH_SCALES`): fitted,
+they grow long in every input the data hardly vary (one trial at one speed says nothing of how the
+disturbance changes with speed), and then a handful of experiences on a straight at 0.9 m/s vouch for
+a corner at 1.8 m/s. The mean keeps the fitted lengthscales. The measurement noise sigma_n, mostly
 localization jitter between consecutive estimates, is not a disturbance of the motion and is left out.
 """
 from __future__ import annotations
@@ -40,11 +44,18 @@ class PriorStd:
                 + np.outer(np.abs(U[:, 1]), self.per_radps))
 
 
+# the inputs of a (experience.A_NAMES) an experience vouches for only nearby, and how near at most (the
+# variance's lengthscales): along the route, in commanded speed (the store's speed bin) and turn rate
+VOUCH_DIMS = (0, 5, 6)
+VOUCH_SCALES = (1.0, 0.25, 0.25)      # m, m/s, rad/s
+
+
 class DisturbanceVariance:
     """Var[g(a)] per output for a batch of inputs: the GP's (latent) variance, or the prior."""
 
     def __init__(self, gp, prior: PriorStd, process_std: tuple[float, float, float]):
         self.gp = gp
+        self.var_gp = None if gp is None else gp.capped(VOUCH_DIMS, VOUCH_SCALES)
         self.prior = prior
         self.floor = np.square(np.asarray(process_std, dtype=float))
 
@@ -62,7 +73,10 @@ class DisturbanceVariance:
         # posterior variance itself counts where smaller: a disturbance the data show to be small (side
         # slip on a flat floor) gets sigma_f below its noise, whose share stays ~1 however much is known.
         sf2 = np.array([h.signal_std ** 2 for h in self.gp.hypers])
-        mean, latent, near = self.gp.predict(A, coverage=True)
+        if self.var_gp is self.gp:
+            mean, latent, near = self.gp.predict(A, coverage=True)
+        else:
+            mean, (_, latent, near) = self.gp.mean(A), self.var_gp.predict(A, coverage=True)
         prior = std ** 2
         share = np.minimum(latent / sf2, 1.0)
         return mean, np.minimum(share * prior, latent + (1.0 - near) * prior) + self.floor
