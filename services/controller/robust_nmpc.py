@@ -183,7 +183,7 @@ class RCLBNMPCLaw:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
                                       sig_floor=np.minimum(rung.sig_loc[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
-        return self._report(nlp, start, result, gp is not None, rung)
+        return self._report(nlp, start, result, gp is not None, rung, cov)
 
     def _corridor_of(self, ctx: StepContext) -> Corridor:
         if ctx.corridor is None:
@@ -249,16 +249,28 @@ class RCLBNMPCLaw:
             self._qp = CorridorQP(K, self.settings.slack_weight)
         return self._qp
 
+    @staticmethod
+    def _plan_spread(nlp: CorridorNLP, it: Iterate, cov: HorizonCovariance) -> tuple[np.ndarray, np.ndarray]:
+        """(widened sigmas, the localizer's share) of the plan as commanded, propagated along its own poses
+        and speeds. The SQP's sigma is a first-order line in the speeds floored at the localizer's share:
+        reported as the prediction, the model's share would read 0 at the floor, and the calibration would
+        take any error beyond the localizer's 3 sigma for an infinite need."""
+        q = nlp.problem.following(it.v)
+        A = np.empty((q.K, 9))
+        X = q.rollout(it.w, with_jac=True, v=it.v, with_v_jac=True, a_out=A)[0]
+        loc = cov.localizer_part(X, q.ref.direction_rad[1:])
+        return cov.widened(cov.along(q, X, A, it.v, it.w)[1], loc), loc
+
     def _report(self, nlp: CorridorNLP, start: Iterate, result: CorridorResult, learned: bool,
-                rung: Rung | None) -> LawResult:
+                rung: Rung | None, cov: HorizonCovariance) -> LawResult:
         it = result.iterate
+        sig, loc = (np.zeros_like(it.sig), np.zeros_like(it.sig)) if rung is None else \
+            self._plan_spread(nlp, it, cov)
         cost = 0.5 * float(it.r @ it.r)
         self.last_step = CorridorStep(nlp, start, result)
         self.last_plan = Plan(it.w, it.X, it.reference.poses, cost, result.iterations, result.status == "converged")
         return LawResult(float(it.w[0]), v_mps=float(it.v[0]), predicted=it.X[1:],
                          solve=SolveReport(cost, result.iterations, result.evaluations, result.status, learned),
-                         uncertainty=UncertaintyReport(float(it.sig[:, 1].max()), float(it.sig[:, 2].max()),
+                         uncertainty=UncertaintyReport(float(sig[:, 1].max()), float(sig[:, 2].max()),
                                                        speed_scale=1.0 if rung is None else rung.scale,
-                                                       violation=it.violation,
-                                                       **_horizon_sigmas(it.sig, np.zeros_like(it.sig) if rung is None
-                                                                         else rung.sig_loc)))
+                                                       violation=it.violation, **_horizon_sigmas(sig, loc)))
