@@ -653,3 +653,35 @@ def test_the_sqps_lateral_sigma_never_falls_below_the_localizers_share_at_a_craw
     steep = dataclasses.replace(nlp, dsig_v=np.eye(len(nlp.v_start)) * 10.0)    # a line that reaches zero
     it = steep.evaluate(np.full(len(nlp.v_start), nlp.problem.s.v_min_mps), np.zeros(len(nlp.v_start)))
     np.testing.assert_array_equal(it.sig[:, 1], nlp.sig_floor)
+
+
+def test_the_reported_spread_is_the_commanded_plans_own_with_a_model_share_at_a_crawl():
+    """The prediction the calibration checks is the plan the law commands: its covariance propagated
+    along that plan's poses and speeds, not the SQP's first-order line floored at the localizer's share.
+    At the floor the model's share read 0 (seed 1187's Husky s1866311426, stop 42), and any error beyond
+    the localizer's 3 sigma became the calibration's largest need: a 20x spread held for 8 m."""
+    th = np.zeros(200)
+    path = Path("line", np.column_stack([np.cumsum(0.25 * np.column_stack([np.cos(th), np.sin(th)]), axis=0), th]))
+    ctx = ctx_for(path, path.pose_at(10.0) + np.array([0.0, 0.013, 0.0]), v=1.0,
+                  corridor=Corridor(path.s, 0.05, math.radians(10)), cov=np.diag([2.5e-5, 2.5e-5, 2.7e-5]))
+    ctx = dataclasses.replace(ctx, spread_factors=(1.0,) + (3.0,) * 9, w_limit=1.2, w_limit_at=lambda v: 1.2)
+    law = RCLBNMPCLaw(NMPCSettings(), DT)
+    for _ in range(3):
+        out = law.angular(ctx)
+    it, nlp = law.last_step.result.iterate, law.last_step.nlp
+    assert out.v_mps <= 0.2                                                  # a crawl
+    unc = out.uncertainty
+    sig, loc = np.array(unc.horizon_sigma_lat_m), np.array(unc.horizon_loc_sigma_lat_m)
+    assert np.all(sig ** 2 - loc ** 2 > 1e-8)
+    # by hand: the sigma-point propagation along the commanded plan, widened by the factors beyond step 1
+    q = nlp.problem.following(it.v)
+    A = np.empty((q.K, 9))
+    X = q.rollout(it.w, False, v=it.v, a_out=A)
+    X = X[0] if isinstance(X, tuple) else X
+    var = variance_model(None, NMPCSettings())
+    cov = HorizonCovariance.at_start(ctx.pose_cov, q.start, var, DT, 2.0)
+    vb, wb = q.effective(it.v, it.w)
+    model = route_sigmas(propagate(X, A, np.zeros((q.K, 3)), var(A), vb, wb, cov.Sigma0, DT, 2.0),
+                         q.ref.direction_rad[1:])[:, 1]
+    kappa = np.array((1.0,) + (9.0,) * 9)
+    np.testing.assert_allclose(sig, np.sqrt(loc ** 2 + kappa * (model ** 2 - loc ** 2)), rtol=1e-6)
