@@ -622,6 +622,16 @@ def test_rc_lb_nmpc_takes_the_learned_crab_at_the_speeds_it_slows_down_to():
     np.testing.assert_allclose(step.nlp.problem.ref.head_offset[:-1], np.clip(expected, -0.2, 0.2), atol=3e-3)
 
 
+def crawl_near_the_edge() -> StepContext:
+    """Stop 40's self-stops as one step: a 5 cm corridor (thesis 7.4.3), the robot 1.3 cm off a straight
+    route, the calibration's factors 3x beyond the first step (measured 5-7x in that experiment)."""
+    th = np.zeros(200)
+    path = Path("line", np.column_stack([np.cumsum(0.25 * np.column_stack([np.cos(th), np.sin(th)]), axis=0), th]))
+    ctx = ctx_for(path, path.pose_at(10.0) + np.array([0.0, 0.013, 0.0]), v=1.0,
+                  corridor=Corridor(path.s, 0.05, math.radians(10)), cov=np.diag([2.5e-5, 2.5e-5, 2.7e-5]))
+    return dataclasses.replace(ctx, spread_factors=(1.0,) + (3.0,) * 9, w_limit=1.2, w_limit_at=lambda v: 1.2)
+
+
 def test_a_crawl_near_the_corridors_edge_steers_back_without_turning_on_the_spot():
     """Stop 40's self-stops, reduced to one step: a 5 cm corridor (thesis 7.4.3), the robot 1.3 cm off the
     route at the ladder's bottom rung, the calibration's factors 3x beyond the first step (measured 5-7x
@@ -629,11 +639,7 @@ def test_a_crawl_near_the_corridors_edge_steers_back_without_turning_on_the_spot
     plan at 0.12 m/s can close within the horizon; the slack price made the SQP spin at the drive's
     1.2 rad/s limit for 3 mm, and the next step's heading spread stopped the robot. A path follower
     steers such an offset back at a fraction of that (band_reach.py)."""
-    th = np.zeros(200)
-    path = Path("line", np.column_stack([np.cumsum(0.25 * np.column_stack([np.cos(th), np.sin(th)]), axis=0), th]))
-    ctx = ctx_for(path, path.pose_at(10.0) + np.array([0.0, 0.013, 0.0]), v=1.0,
-                  corridor=Corridor(path.s, 0.05, math.radians(10)), cov=np.diag([2.5e-5, 2.5e-5, 2.7e-5]))
-    ctx = dataclasses.replace(ctx, spread_factors=(1.0,) + (3.0,) * 9, w_limit=1.2, w_limit_at=lambda v: 1.2)
+    ctx = crawl_near_the_edge()
     law = RCLBNMPCLaw(NMPCSettings(), DT)
     out = [law.angular(ctx) for _ in range(4)]
     assert all(not o.stop_reason and o.v_mps <= 0.2 for o in out)          # crawling, as in the experiment
@@ -662,11 +668,7 @@ def test_the_reported_spread_is_the_commanded_plans_own_with_a_model_share_at_a_
     along that plan's poses and speeds, not the SQP's first-order line floored at the localizer's share.
     At the floor the model's share read 0 (seed 1187's Husky s1866311426, stop 42), and any error beyond
     the localizer's 3 sigma became the calibration's largest need: a 20x spread held for 8 m."""
-    th = np.zeros(200)
-    path = Path("line", np.column_stack([np.cumsum(0.25 * np.column_stack([np.cos(th), np.sin(th)]), axis=0), th]))
-    ctx = ctx_for(path, path.pose_at(10.0) + np.array([0.0, 0.013, 0.0]), v=1.0,
-                  corridor=Corridor(path.s, 0.05, math.radians(10)), cov=np.diag([2.5e-5, 2.5e-5, 2.7e-5]))
-    ctx = dataclasses.replace(ctx, spread_factors=(1.0,) + (3.0,) * 9, w_limit=1.2, w_limit_at=lambda v: 1.2)
+    ctx = crawl_near_the_edge()
     law = RCLBNMPCLaw(NMPCSettings(), DT)
     for _ in range(3):
         out = law.angular(ctx)
