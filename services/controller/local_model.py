@@ -18,6 +18,7 @@ import numpy as np
 from common.gp import GaussianProcess, SEHyper
 from common.messages import HyperMsg
 from services.controller.laws import StepContext
+from services.controller.uncertainty import variance_gp
 
 Window = tuple[np.ndarray, np.ndarray]     # (A (n, 9), G (n, 3))
 
@@ -134,6 +135,7 @@ class LocalModels:
             self.failures += 1
             log.warning("no model for the window at vertex %d (%s): nominal model this step", center, exc)
             return None
+        variance_gp(gp)            # its variance's GP too, while between steps (uncertainty.py)
         self.builds += 1
         self._cache[key] = gp
         while len(self._cache) > self.keep:

@@ -257,7 +257,7 @@ class RCLBNMPCLaw:
         take any error beyond the localizer's 3 sigma for an infinite need."""
         q = nlp.problem.following(it.v)
         A = np.empty((q.K, 9))
-        X = q.rollout(it.w, with_jac=True, v=it.v, with_v_jac=True, a_out=A)[0]
+        X = q.rollout(it.w, False, v=it.v, a_out=A)[0]
         loc = cov.localizer_part(X, q.ref.direction_rad[1:])
         return cov.widened(cov.along(q, X, A, it.v, it.w)[1], loc), loc
 

@@ -50,12 +50,17 @@ VOUCH_DIMS = (0, 5, 6)
 VOUCH_SCALES = (1.0, 0.25, 0.25)      # m, m/s, rad/s
 
 
+def variance_gp(gp):
+    """The GP whose variance the laws use: `gp`'s data under the capped lengthscales (built once per GP)."""
+    return gp.capped(VOUCH_DIMS, VOUCH_SCALES)
+
+
 class DisturbanceVariance:
     """Var[g(a)] per output for a batch of inputs: the GP's (latent) variance, or the prior."""
 
     def __init__(self, gp, prior: PriorStd, process_std: tuple[float, float, float]):
         self.gp = gp
-        self.var_gp = None if gp is None else gp.capped(VOUCH_DIMS, VOUCH_SCALES)
+        self.var_gp = None if gp is None else variance_gp(gp)
         self.prior = prior
         self.floor = np.square(np.asarray(process_std, dtype=float))
 
