@@ -680,8 +680,7 @@ def test_the_reported_spread_is_the_commanded_plans_own_with_a_model_share_at_a_
     # by hand: the sigma-point propagation along the commanded plan, widened by the factors beyond step 1
     q = nlp.problem.following(it.v)
     A = np.empty((q.K, 9))
-    X = q.rollout(it.w, False, v=it.v, a_out=A)
-    X = X[0] if isinstance(X, tuple) else X
+    X = q.rollout(it.w, False, v=it.v, a_out=A)[0]
     var = variance_model(None, NMPCSettings())
     cov = HorizonCovariance.at_start(ctx.pose_cov, q.start, var, DT, 2.0)
     vb, wb = q.effective(it.v, it.w)

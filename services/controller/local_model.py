@@ -32,13 +32,15 @@ log = logging.getLogger(__name__)
 
 class LocalModels:
     def __init__(self, window: Callable[[int, float], Window], hyper: Callable[[], HyperMsg | None],
-                 horizon_s: float, v_bin_mps: float, keep: int = 8, hold_steps: int = 0):
+                 horizon_s: float, v_bin_mps: float, keep: int = 8, hold_steps: int = 0,
+                 with_variance: bool = False):
         self.window = window
         self.hyper = hyper
         self.horizon_s = horizon_s
         self.v_bin = v_bin_mps
         self.keep = keep
         self.hold_steps = hold_steps
+        self.with_variance = with_variance     # also build each window's variance GP (uncertainty.variance_gp)
         self._bin: int | None = None
         self._away = 0
         self._bin_with_data: int | None = None
@@ -135,7 +137,8 @@ class LocalModels:
             self.failures += 1
             log.warning("no model for the window at vertex %d (%s): nominal model this step", center, exc)
             return None
-        variance_gp(gp)            # its variance's GP too, while between steps (uncertainty.py)
+        if self.with_variance:
+            variance_gp(gp)        # its variance's GP too, while between steps (uncertainty.py)
         self.builds += 1
         self._cache[key] = gp
         while len(self._cache) > self.keep:

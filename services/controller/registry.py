@@ -36,17 +36,21 @@ class LawEntry:
     learns: Literal["", "ilc", "gp"]      # from nothing, its own feedforward per route, or the GP windows
     needs_corridor: bool = False          # the constrained laws read [constraints]
     window_hold_steps: int = 0
+    uses_variance: bool = False           # plans with the GP's variance (uncertainty.py), not its mean alone
 
 
 STEERING_LAWS: dict[str, LawEntry] = {e.name: e for e in (
     LawEntry("fl", "3.5, eq. 3.1-3.5", lambda i: FLLaw(i.gains), ""),
     LawEntry("ilc", "ch. 3, eq. 3.12-3.16", lambda i: ILCLaw(i.gains, i.ilc), "ilc"),
     LawEntry("lb-nmpc", "ch. 5, eq. 5.2-5.16", lambda i: LBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp"),
-    LawEntry("mm-lb-nmpc", "ch. 6, eq. 6.2-6.14", lambda i: MMLBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp"),
+    LawEntry("mm-lb-nmpc", "ch. 6, eq. 6.2-6.14", lambda i: MMLBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp",
+             uses_variance=True),
     LawEntry("c-lb-nmpc", "ch. 7, eq. 7.2-7.6, alpha = 0",
-             lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for, alpha=0.0), "gp", True, WINDOW_HOLD_STEPS),
+             lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for, alpha=0.0), "gp", True, WINDOW_HOLD_STEPS,
+             uses_variance=True),
     LawEntry("rc-lb-nmpc", "ch. 7, eq. 7.2-7.12",
-             lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp", True, WINDOW_HOLD_STEPS),
+             lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp", True, WINDOW_HOLD_STEPS,
+             uses_variance=True),
 )}
 
 if set(STEERING_LAWS) != set(ALGORITHMS):
