@@ -129,7 +129,7 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
     entry = STEERING_LAWS[algorithm]
     models = LocalModels(lambda v, s: windows[(v, int(math.floor(s / POLICY.v_bin_mps)))], lambda: hyper,
                          settings.horizon * DT, POLICY.v_bin_mps, hold_steps=entry.window_hold_steps,
-                         with_variance=entry.uses_variance)
+                         variance_caps=settings.vouch_lengthscales if entry.uses_variance else None)
     law = entry.build(LawInputs(FLGains(), settings, DT, models.model_for))
     timed = TimedLaw(law, models, keep_every)
     corridor = Corridor(cl.path.s, 0.3, math.radians(20.0)) if entry.needs_corridor else None

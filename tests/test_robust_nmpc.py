@@ -260,6 +260,12 @@ def test_a_few_experiences_at_one_speed_do_not_vouch_for_another_speed_or_a_corn
     assert np.all(var(query(4.0, 1.8, 0.1))[0] >= 0.95 * prior_var(1.8, 0.1))      # same place, 2x the speed
     assert np.all(var(query(6.0, 0.874, 0.6))[0] >= 0.8 * prior_var(0.874, 0.6))  # its speed, a new turn rate
     assert np.all(var(query(3.5, 0.874, 0.1))[0] <= 0.05 * prior_var(0.874, 0.1))  # where it drove
+    # the caps are a setting: a speed cap of 2 m/s lets the same experiences vouch for 1.8 m/s
+    wide = variance_model(gp, NMPCSettings(vouch_lengthscales=(1.0, 2.0, 0.25)))
+    assert np.all(wide(query(4.0, 1.8, 0.1))[0] <= 0.5 * prior_var(1.8, 0.1))
+    assert np.allclose(variance_model(gp, NMPCSettings())(corner)[0], var(corner)[0] + np.square(NMPCSettings().process_std))
+    with pytest.raises(ValueError, match="vouch_lengthscales"):
+        NMPCSettings(vouch_lengthscales=(1.0, 0.0, 0.25))
 
 
 def test_lateral_sigma_speed_jacobian_with_a_drive_lag_matches_finite_differences():

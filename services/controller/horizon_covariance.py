@@ -20,7 +20,7 @@ DEFAULT_START_COV = np.diag([1e-4, 1e-4, 1e-4])   # when the localizer sends non
 
 
 def variance_model(gp, s: NMPCSettings) -> DisturbanceVariance:
-    return DisturbanceVariance(gp, s.prior_std(), s.process_std)
+    return DisturbanceVariance(gp, s.prior_std(), s.process_std, s.vouch_lengthscales)
 
 
 @dataclass(frozen=True)

@@ -33,14 +33,15 @@ log = logging.getLogger(__name__)
 class LocalModels:
     def __init__(self, window: Callable[[int, float], Window], hyper: Callable[[], HyperMsg | None],
                  horizon_s: float, v_bin_mps: float, keep: int = 8, hold_steps: int = 0,
-                 with_variance: bool = False):
+                 variance_caps: tuple[float, float, float] | None = None):
         self.window = window
         self.hyper = hyper
         self.horizon_s = horizon_s
         self.v_bin = v_bin_mps
         self.keep = keep
         self.hold_steps = hold_steps
-        self.with_variance = with_variance     # also build each window's variance GP (uncertainty.variance_gp)
+        # set: also build each window's variance GP, with these lengthscale caps (uncertainty.variance_gp)
+        self.variance_caps = variance_caps
         self._bin: int | None = None
         self._away = 0
         self._bin_with_data: int | None = None
@@ -137,8 +138,8 @@ class LocalModels:
             self.failures += 1
             log.warning("no model for the window at vertex %d (%s): nominal model this step", center, exc)
             return None
-        if self.with_variance:
-            variance_gp(gp)        # its variance's GP too, while between steps (uncertainty.py)
+        if self.variance_caps is not None:
+            variance_gp(gp, self.variance_caps)     # its variance's GP too, while between steps
         self.builds += 1
         self._cache[key] = gp
         while len(self._cache) > self.keep:

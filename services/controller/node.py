@@ -227,7 +227,8 @@ class ControllerService(Service):
             # learning off: the same controller on its nominal model only
             self.models = LocalModels(window, lambda: cache.hyper if self.learning else None,
                                       settings.horizon * self.cfg.period_s, self.cfg.store.v_bin_mps,
-                                      hold_steps=entry.window_hold_steps, with_variance=entry.uses_variance)
+                                      hold_steps=entry.window_hold_steps,
+                                      variance_caps=settings.vouch_lengthscales if entry.uses_variance else None)
         law = entry.build(LawInputs(self.gains, settings, self.cfg.period_s,
                                     self.models.model_for if self.models else (lambda ctx: None), self.ilc))
         return law, self.cfg.ilc.ic_vertices if entry.learns == "ilc" else 0

@@ -5,7 +5,7 @@ from dataclasses import dataclass, replace
 
 from common.messages import NominalModel
 from services.controller.actuator import ActuatorLag
-from services.controller.uncertainty import PriorStd
+from services.controller.uncertainty import VOUCH_SCALES, PriorStd
 
 _PRIOR = PriorStd()
 # the settings a teach pass identifies unless they are set by hand (NominalModel has the same names)
@@ -47,6 +47,10 @@ class NMPCSettings:
     # open-loop covariance ignores the localization updates still to come)
     min_band_fraction: float = 0.2
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)   # floor for what never repeats
+    # MM/C/RC: how far an experience vouches at most, as the GP variance's lengthscale caps along the route
+    # (m), in commanded speed (m/s) and in commanded turn rate (rad/s); the mean keeps the fitted ones
+    # (uncertainty.py). A robot much faster than 2.5 m/s may want a wider speed cap (its speed bins too)
+    vouch_lengthscales: tuple[float, float, float] = VOUCH_SCALES
     # the drive's first-order lag (v, w) in seconds (actuator.py); 0: eq. 5.26 as is. None: identified from
     # the route's teach pass (identification.py), or none without one
     actuator_tau_s: tuple[float, float] | None = None
@@ -66,6 +70,10 @@ class NMPCSettings:
             if len(value) != 3 or min(value) < 0:
                 raise ValueError(f"{name}: three non-negative values (along, lateral, heading)")
             object.__setattr__(self, name, value)
+        caps = tuple(float(x) for x in self.vouch_lengthscales)
+        if len(caps) != 3 or not min(caps) > 0:
+            raise ValueError("vouch_lengthscales: three positive lengthscales (along m, speed m/s, turn rate rad/s)")
+        object.__setattr__(self, "vouch_lengthscales", caps)
         if self.actuator_tau_s is not None:
             tau = tuple(float(x) for x in self.actuator_tau_s)
             if len(tau) != 2 or min(tau) < 0:

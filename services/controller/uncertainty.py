@@ -12,7 +12,8 @@ and turn rate); it is the variance before any experience (trial 1, or a speed ne
 a GP, the variance is that prior scaled by the share of the GP's prior variance its (latent) posterior
 keeps, or, near the experiences (in the GP's own metric), the posterior variance itself where it is
 smaller; plus a small `process_std` floor for what never repeats. That metric's lengthscales are capped
-along the route, in commanded speed and in commanded turn rate (`VOUCH_DIMS`, `VOUCH_SCALES`): fitted,
+along the route, in commanded speed and in commanded turn rate (`VOUCH_DIMS`; the caps are the setting
+`NMPCSettings.vouch_lengthscales`, by default `VOUCH_SCALES`): fitted,
 they grow long in every input the data hardly vary (one trial at one speed says nothing of how the
 disturbance changes with speed), and then a handful of experiences on a straight at 0.9 m/s vouch for
 a corner at 1.8 m/s. The mean keeps the fitted lengthscales. The measurement noise sigma_n, mostly
@@ -44,23 +45,26 @@ class PriorStd:
                 + np.outer(np.abs(U[:, 1]), self.per_radps))
 
 
-# the inputs of a (experience.A_NAMES) an experience vouches for only nearby, and how near at most (the
-# variance's lengthscales): along the route, in commanded speed (the store's speed bin) and turn rate
+# the inputs of a (experience.A_NAMES) an experience vouches for only nearby, and how near at most by
+# default (the variance's lengthscales): along the route, in commanded speed (the store's speed bin) and
+# turn rate
 VOUCH_DIMS = (0, 5, 6)
 VOUCH_SCALES = (1.0, 0.25, 0.25)      # m, m/s, rad/s
 
 
-def variance_gp(gp):
-    """The GP whose variance the laws use: `gp`'s data under the capped lengthscales (built once per GP)."""
-    return gp.capped(VOUCH_DIMS, VOUCH_SCALES)
+def variance_gp(gp, caps: tuple[float, float, float] = VOUCH_SCALES):
+    """The GP whose variance the laws use: `gp`'s data under lengthscales capped at `caps` (along the
+    route, commanded speed, commanded turn rate; built once per GP and caps)."""
+    return gp.capped(VOUCH_DIMS, tuple(caps))
 
 
 class DisturbanceVariance:
     """Var[g(a)] per output for a batch of inputs: the GP's (latent) variance, or the prior."""
 
-    def __init__(self, gp, prior: PriorStd, process_std: tuple[float, float, float]):
+    def __init__(self, gp, prior: PriorStd, process_std: tuple[float, float, float],
+                 caps: tuple[float, float, float] = VOUCH_SCALES):
         self.gp = gp
-        self.var_gp = None if gp is None else variance_gp(gp)
+        self.var_gp = None if gp is None else variance_gp(gp, caps)
         self.prior = prior
         self.floor = np.square(np.asarray(process_std, dtype=float))
 
