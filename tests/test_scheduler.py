@@ -374,3 +374,36 @@ def test_the_deployment_gives_the_scheduler_the_robots_turn_rate_limit():
         sc = parse_scenario({**base, "scheduler": {"enabled": True, "w_max": written, "guard": False}})
         params = service_configs(sc, "/tmp/unused")["scheduler"].params
         assert params.w_max == used and not params.guard
+
+
+def test_a_decrease_that_did_not_help_is_not_repeated():
+    """A perturbed Grizzly on an 8.5 deg side slope (bench scenarios --seed 7741 --robots perturbed,
+    scenario 5): 0.34 m at 0.5 m/s, then 0.32 m at 0.26 m/s (lambda_L 0.15; the deadband ends at 0.165).
+    Eq. 4.2 lowers the slope again, to 0.02 -> the 0.05 floor, where that run crawled 200 s a trial with
+    errors up to 0.64 m. G5: proportional fall 1 - 0.26 / 0.5 = 48 %, half of it asked (guard_help 0.5):
+    the error must fall below 0.34 (1 - 0.24) = 0.2584 m; 0.32 m did not: withheld at 0.26, and still in
+    the trial after, driven at 0.26 again (the faster pass of trial 1 still counts). Had the error fallen
+    to 0.25 m, or had the turn rate broken its criterion (1.2 > 1.1 rad/s), it is lowered as eq. 4.2 says;
+    with one trial, or the guard off, nothing is withheld."""
+    n = 11
+    s, xy = straight(n)
+    first, second = np.full(n, 0.5), np.full(n, 0.26)
+    at_first = passes_v([0.34] * n, [2.0] * n, [0.3] * n, first)
+    p = no_limits(lambda_L=0.15, lambda_H=10.0, lambda_omega=1.0, w_max=1.2)
+
+    def after(e_lat, w=0.3, params=p, history_of=2, repeat=False):
+        at_second = passes_v([e_lat] * n, [2.0] * n, [w] * n, second)
+        history = [(first, at_first), (second, at_second)] + ([(second, at_second)] if repeat else [])
+        return plan(second, at_second, history[-history_of:] if history_of == 1 else history, s, xy, params)
+
+    held = after(0.32)
+    np.testing.assert_allclose(held.schedule, 0.26)
+    assert held.decisions.tolist() == [DECREASE] * n       # eq. 4.2's decisions, reported as they were
+    assert "guard: 11 decreases withheld where slowing down did not cut the tracking error" in held.notes
+    np.testing.assert_allclose(after(0.32, repeat=True).schedule, 0.26)
+    np.testing.assert_allclose(after(0.25).schedule, 0.05)
+    np.testing.assert_allclose(after(0.32, w=1.2).schedule, 0.05)
+    np.testing.assert_allclose(after(0.32, history_of=1).schedule, 0.05)
+    np.testing.assert_allclose(after(0.32, params=no_limits(lambda_L=0.15, w_max=1.2, guard=False)).schedule, 0.05)
+    with pytest.raises(ValueError, match="guard_help"):
+        no_limits(guard_help=0.0)

@@ -51,6 +51,18 @@ lowers a speed: decreases stay eq. 4.2's). For each criterion c (|e_L|, |e_H| of
        crawl, and at its larger errors, for good; below v_init the speeds are eq. 4.2's alone. The turn
        rate keeps its real pass speeds: omega = v kappa is proportional at any speed.
 
+  (G5) a decrease is withheld where slowing has not helped: where an earlier trial passed a vertex
+       faster than the latest (by at least gamma2 / 2) and the latest pass's worst tracking error within
+       guard_radius_m, as a share of its limit (max |e_L| / lambda_L, |e_H| / lambda_H), fell by less
+       than `guard_help` of the proportional fall, e_slow > e_fast (1 - guard_help (1 - v_slow / v_fast)).
+       A side slope slides the robot per second, not per metre: slowing there leaves the error as it was
+       or makes it larger, spends longer in the slide, and puts the robot in a speed bin its learned model
+       has no experience of; eq. 4.2 alone lowers such a vertex trial after trial to the 0.05 m/s floor
+       (a perturbed Grizzly on an 8.5 deg slope: 0.34 m at 0.5 m/s, 0.32 m at 0.26 m/s, then 200 s a
+       trial crawling at 0.05 m/s with errors of 0.26-0.64 m). Held at its speed, the vertex is driven at
+       one speed trial after trial, which the learned model can learn. A vertex whose turn rate broke its
+       criterion is lowered as eq. 4.2 says: omega = v kappa falls with the speed.
+
 The learned model's variance at the new speed bin (thesis 5.3.2, 7.2) would be a third prediction, but
 it lives in the store and describes the disturbance, not the errors and turn rates the controller will
 produce with it; the passes predict those directly, without a query on the bus, so the guard uses them
@@ -93,6 +105,7 @@ class SchedulerParams:
                                  # and w_max (G3)
     guard_radius_m: float = 3.0  # passes this close to a vertex count as its own (G1)
     guard_trials: int = 3        # the latest trials the growth with speed is fitted over (G2)
+    guard_help: float = 0.5      # slowing must have cut the error by this share of its proportional fall (G5)
 
     def __post_init__(self):
         if self.gamma1 <= 0 or self.gamma2 <= 0:
@@ -111,6 +124,8 @@ class SchedulerParams:
             raise ValueError("w_max must be > 0 (or left out: unknown)")
         if not 0 < self.guard_share <= 1 or self.guard_radius_m < 0 or self.guard_trials < 1:
             raise ValueError("guard_share must be in (0, 1], guard_radius_m >= 0 and guard_trials >= 1")
+        if not 0 < self.guard_help <= 1:
+            raise ValueError("guard_help must be in (0, 1]")
 
 
 @dataclass
@@ -251,13 +266,20 @@ def initial_schedule(s: np.ndarray, xy: np.ndarray, p: SchedulerParams) -> Propo
 
 
 def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.ndarray, p: SchedulerParams,
-                  failed_at: np.ndarray | None = None, caps: GuardCaps | None = None) -> Proposal:
+                  failed_at: np.ndarray | None = None, caps: GuardCaps | None = None,
+                  withhold: np.ndarray | None = None) -> Proposal:
     """The schedule for trial j+1 from trial j's schedule and experience. `failed_at[i]`: the lowest
     scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials;
-    `caps`: the guard's ceilings (guard_caps), None for the thesis rule alone."""
+    `caps`: the guard's ceilings (guard_caps), `withhold`: the decreases it holds back (unhelpful_decreases);
+    both None for the thesis rule alone."""
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
-    sugg = np.where(decisions == INCREASE, prev + p.gamma1, np.where(decisions == DECREASE, prev - p.gamma2, prev))
+    lower = decisions == DECREASE
+    if withhold is not None and np.any(lower & withhold):
+        notes.append(f"guard: {int(np.sum(lower & withhold))} decreases withheld where slowing down did not "
+                     f"cut the tracking error")
+        lower &= ~withhold
+    sugg = np.where(decisions == INCREASE, prev + p.gamma1, np.where(lower, prev - p.gamma2, prev))
     if p.use_all_trials and failed_at is not None:
         capped = (decisions == INCREASE) & (sugg >= failed_at)
         sugg = np.where(capped, np.maximum(prev, failed_at - p.gamma2), sugg)
@@ -278,7 +300,8 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     where use_all_trials and the guard ask for them."""
     failed = failure_speeds(history, p) if p.use_all_trials and history else None
     caps = guard_caps(history, s, p) if p.guard and history else None
-    return next_schedule(prev, passes, s, xy, p, failed, caps)
+    withhold = unhelpful_decreases(history, s, p) if p.guard else None
+    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold)
 
 
 # --- the guard (module doc, G1-G4) ----------------------------------------------------------------------
@@ -361,6 +384,39 @@ def guard_caps(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray, p:
         caps[c] = growth_cap(V, E, float(allowed[c]), p.gamma1 / 2)
     v_cap = caps.min(axis=0)
     return GuardCaps(np.maximum(v_cap, p.v_init), np.where(np.isfinite(v_cap), np.argmin(caps, axis=0), -1))
+
+
+def unhelpful_decreases(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray,
+                        p: SchedulerParams) -> np.ndarray:
+    """G5 per vertex: an earlier trial of `history` passed it faster than the latest one, whose worst
+    tracking error nearby fell by less than guard_help of the proportional fall, and whose turn rate kept
+    to its criterion. All False with fewer than two trials."""
+    n = len(s)
+    if len(history) < 2:
+        return np.zeros(n, dtype=bool)
+    lo, hi = neighbourhoods(s, p.guard_radius_m)
+    sched1, latest = history[-1]
+    v1, e1 = pass_speeds(sched1, latest), _worst_share(latest, lo, hi, p)
+    out = np.zeros(n, dtype=bool)
+    for sched0, before in history[:-1]:
+        v0, e0 = pass_speeds(sched0, before), _worst_share(before, lo, hi, p)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            expected = e0 * (1.0 - p.guard_help * (1.0 - v1 / v0))
+            out |= (v1 <= v0 - p.gamma2 / 2) & (e1 > expected) & np.isfinite(e0) & np.isfinite(e1)
+    return out & ~(np.abs(latest.w_cmd_radps) > p.lambda_omega * p.lambda_db)
+
+
+def _worst_share(pa: VertexPasses, lo: np.ndarray, hi: np.ndarray, p: SchedulerParams) -> np.ndarray:
+    """Per vertex, the largest of |e_L| / lambda_L and |e_H| / lambda_H within [lo, hi) (NaN: no pass)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.fmax(np.abs(pa.e_lat_m) / max(p.lambda_L, 1e-9),
+                        np.abs(pa.e_head_rad) / max(math.radians(p.lambda_H), 1e-9))
+    out = np.full(len(share), np.nan)
+    for i in range(len(share)):
+        window = share[lo[i]:hi[i]]
+        if np.any(np.isfinite(window)):
+            out[i] = np.nanmax(window)
+    return out
 
 
 def apply_guard(sugg: np.ndarray, prev: np.ndarray, decisions: np.ndarray,
