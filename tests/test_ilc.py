@@ -3,10 +3,12 @@ learning in closed loop with the simulated robot."""
 import dataclasses
 import math
 
+import msgpack
 import numpy as np
 import pytest
 
 from bench.closed_loop import ClosedLoop
+from common.codec import VERSION_FIELD
 from common.robot import PRESETS
 from common.scenario import TerrainPatch
 from services.controller.fl import FLGains, fl_angular_rate
@@ -248,6 +250,48 @@ def test_a_trial_that_got_worse_reverts_to_the_baseline_feedforward_with_half_th
         mem.record(i, 0.2 if 10 <= i < 16 else 0.0, 0.0, v_mps=1.5)      # faster: a new baseline
     assert not mem.update(ILCGains(), plant, dist).reverted
     assert mem.baseline.speed_mps == pytest.approx(1.5) and mem.baseline.w_ff_radps == [0.05] * n
+
+
+def test_a_route_that_got_harder_is_a_new_baseline_not_a_reason_to_stop_learning():
+    """After a reverted trial (errors 0.2 m on the bump against the baseline's 0.1 m), a trial driven with
+    half the step that is just as bad cannot blame the step: the route changed (a rut deepened), and it
+    becomes the baseline, its errors learned from, the step grown back. One whose excess shrank with the
+    step (0.13 m: a quarter of the excess is left) is reverted again."""
+    n, dist, plant = 40, np.ones(39), ILCPlant(FLGains(), tau_w_s=0.2)
+
+    def trial(mem, bump):
+        for i in range(n):
+            mem.record(i, bump if 10 <= i < 16 else 0.0, 0.0, v_mps=1.0)
+        return mem.update(ILCGains(), plant, dist)
+
+    mem, base = guarded_memory()
+    first = trial(mem, 0.2)
+    assert first.reverted and not first.route_changed and mem.baseline.reverted_cost == pytest.approx(first.cost)
+    driven = mem.w_ff.copy()
+    again = trial(mem, 0.2)
+    assert again.route_changed and not again.reverted and "the route changed" in again.describe()
+    assert mem.baseline.e_lat_m[12] == pytest.approx(0.2) and mem.baseline.w_ff_radps == driven.tolist()
+    assert mem.baseline.step_scale == 1.0 and mem.baseline.reverted_cost == 0.0
+    assert np.abs(mem.w_ff - driven).max() > 0.01                    # learning from the new errors
+
+    mem, base = guarded_memory()
+    trial(mem, 0.2)
+    shrank = trial(mem, 0.13)
+    assert shrank.reverted and not shrank.route_changed and mem.baseline.step_scale == 0.25
+    assert mem.baseline.e_lat_m == base.e_lat_m
+
+
+def test_a_baseline_of_an_older_version_is_not_used_and_the_next_trial_judged_afresh(tmp_path, caplog):
+    mem, _ = guarded_memory()
+    mem.save(tmp_path)
+    f = ILCMemory.file_of(tmp_path, "r", ".ilc-baseline")
+    body = msgpack.unpackb(f.read_bytes())
+    body[VERSION_FIELD] = 1                                          # as a v1 file says
+    del body["reverted_cost"]
+    f.write_bytes(msgpack.packb(body))
+    with caplog.at_level("WARNING"):
+        back = ILCMemory.load(tmp_path, "r", len(mem.w_ff))
+    assert back.baseline is None and back.w_ff.tolist() == mem.w_ff.tolist() and "not used" in caplog.text
 
 
 def test_the_baseline_is_saved_beside_the_feedforward(tmp_path):

@@ -16,6 +16,7 @@ update leaves out errors of saturated stretches and reverts a feedforward whose 
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 from pathlib import Path as FsPath
 from typing import ClassVar, Literal
@@ -23,7 +24,7 @@ from typing import ClassVar, Literal
 import numpy as np
 
 from common.atomic_file import write_atomically
-from common.codec import Message, decode, encode
+from common.codec import DecodeError, Message, decode, encode
 from common.messages import check_name
 from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.ilc_lifted import (MIN_SPEED_MPS, ILCPlant, LiftedWeights, lifted_model, mean_speeds,
@@ -31,6 +32,8 @@ from services.controller.ilc_lifted import (MIN_SPEED_MPS, ILCPlant, LiftedWeigh
 from services.controller.ilc_monitor import (MIN_STEP_SCALE, ILCBaseline, after_saturation, recovery_s,
                                              trial_cost)
 from services.controller.laws import LawResult, StepContext
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -78,6 +81,7 @@ class ILCUpdate:
     """What one update did."""
     change_radps: float          # the largest change of the feedforward
     reverted: bool = False       # the trial got worse: back to the baseline's feedforward
+    route_changed: bool = False  # worse, but not because of the feedforward: accepted (ilc_monitor.py)
     cost: float = 0.0            # the trial's error cost (ilc_monitor.trial_cost), and the baseline's
     baseline_cost: float = 0.0
     step_scale: float = 1.0
@@ -87,6 +91,10 @@ class ILCUpdate:
         if self.reverted:
             what = (f"reverted to the last accepted feedforward: error cost {self.cost:.4g} against "
                     f"{self.baseline_cost:.4g}, step now x{self.step_scale:.3g}")
+        elif self.route_changed:
+            what = (f"accepted although its error cost {self.cost:.4g} exceeds the baseline's "
+                    f"{self.baseline_cost:.4g}: half the step did not shrink the excess, so the route changed; "
+                    f"largest change {self.change_radps:.3f} rad/s")
         else:
             what = f"largest change {self.change_radps:.3f} rad/s"
         sat = f", {self.saturated_vertices} saturated vertices left out" if self.saturated_vertices else ""
@@ -144,9 +152,11 @@ class ILCMemory:
         b = self.baseline
         worse = (b is not None and gains.revert_margin > 0 and b.comparable(speed)
                  and cost > (1.0 + gains.revert_margin) * b.cost)
+        changed = worse and b.route_changed(cost)
+        worse = worse and not changed
         n_sat = int(np.sum(self._saturated & seen))
         if worse:
-            b = replace(b, step_scale=max(b.step_scale / 2.0, MIN_STEP_SCALE))
+            b = replace(b, step_scale=max(b.step_scale / 2.0, MIN_STEP_SCALE), reverted_cost=cost)
         else:
             learn = seen & ~after_saturation(self._saturated, distances_m, speeds, recovery_s(plant))
             scale = min(1.0, 2.0 * b.step_scale) if b is not None else 1.0
@@ -160,7 +170,7 @@ class ILCMemory:
         dw = norm_optimal_change(w0, np.asarray(b.e_lat_m), np.asarray(b.e_head_rad), np.asarray(b.learn_from),
                                  model, wt)
         change = self._apply(gains.gamma_u * w0 + b.step_scale * dw)
-        return ILCUpdate(change, worse, cost, prev_cost, b.step_scale, n_sat)
+        return ILCUpdate(change, worse, changed, cost, prev_cost, b.step_scale, n_sat)
 
     def _update_thesis(self, gains: ILCGains) -> float:
         err, seen = self.vertex_errors()
@@ -215,7 +225,11 @@ class ILCMemory:
             raise ValueError(f"{f} holds {len(msg.w_ff_radps)} vertices but route {path_id} has {n_vertices}; "
                              "remove it to start learning afresh")
         fb = cls.file_of(directory, path_id, ".ilc-baseline")
-        baseline = decode(ILCBaseline, fb.read_bytes()) if fb.exists() else None
+        try:
+            baseline = decode(ILCBaseline, fb.read_bytes()) if fb.exists() else None
+        except DecodeError as exc:                # e.g. written by an older version: judge afresh
+            log.warning("%s not used (%s): the next trial becomes the baseline", fb, exc)
+            baseline = None
         if baseline is not None and len(baseline.w_ff_radps) != n_vertices:
             baseline = None                       # from before the route was taught again: judge afresh
         return cls(path_id, n_vertices, np.array(msg.w_ff_radps), msg.trials, baseline)

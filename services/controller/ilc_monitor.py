@@ -14,6 +14,12 @@ do what the feedforward asks:
   the next change is computed again from the baseline's errors with half the step (a trust region
   on the trial axis); an accepted trial becomes the baseline and lets the step grow back. A trial at
   another speed is a new baseline: its errors are not comparable.
+- **A route that got harder.** Ruts deepen with every pass, so a trial can be worse than the baseline
+  whatever its feedforward, and every later trial is reverted until the step is nil: learning stops
+  where it is most needed. A feedforward that made things worse does so less with half the step; the
+  route's change does not shrink with it. So a worse trial whose excess cost over the baseline is not
+  below WORLD_SHARE of the excess of the trial reverted just before it (driven with twice its step) is
+  accepted as the new baseline: the route changed, not the feedforward.
 """
 from __future__ import annotations
 
@@ -28,11 +34,13 @@ from services.controller.ilc_lifted import ILCPlant, LiftedWeights
 
 SAME_SPEED = 0.05          # trials whose mean speeds differ by less than this share are comparable
 MIN_STEP_SCALE = 1.0 / 64.0
+WORLD_SHARE = 0.75         # halving the step leaves at most ~1/2 (linear) to 1/4 (quadratic) of its harm
 
 
 @dataclass(frozen=True, kw_only=True)
 class ILCBaseline(Message):
     """The last accepted feedforward of a route with the errors of the trial that drove it."""
+    SCHEMA_VERSION = 2              # v2: reverted_cost
     MAX_BYTES: ClassVar[int] = 64 * 1024 * 1024
     path_id: str
     w_ff_radps: list[float]
@@ -43,6 +51,7 @@ class ILCBaseline(Message):
     cost: float                     # trial_cost of that trial
     speed_mps: float                # its mean speed
     step_scale: float = 1.0         # on the lifted update's step: halved by every reverted trial
+    reverted_cost: float = 0.0      # the cost of the last trial reverted since this one (0: none yet)
 
     def __post_init__(self):
         check_name("path_id", self.path_id)
@@ -52,6 +61,11 @@ class ILCBaseline(Message):
 
     def comparable(self, speed_mps: float) -> bool:
         return abs(speed_mps - self.speed_mps) <= SAME_SPEED * max(self.speed_mps, 1e-3)
+
+    def route_changed(self, cost: float) -> bool:
+        """A worse trial, driven with half the step of the trial reverted before it, whose excess over
+        this baseline did not shrink with the step (module docstring)."""
+        return self.reverted_cost > self.cost and cost - self.cost > WORLD_SHARE * (self.reverted_cost - self.cost)
 
 
 def trial_cost(e_lat: np.ndarray, e_head: np.ndarray, seen: np.ndarray, wt: LiftedWeights) -> float:
