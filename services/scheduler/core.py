@@ -27,7 +27,7 @@ by gamma1 when its criteria were met at the *old* speed; it does not ask whether
 the new one: a turn that took 0.86 rad/s at 0.7 m/s is scheduled at 0.9 m/s, where it takes ~1.1 rad/s
 against a 1.2 rad/s limit, and the corrections on top of that saturate the controller. The guard asks of a prediction at the
 new speed what eq. 4.2 asks of the last pass, with a margin, and caps the increase there (it never
-lowers a speed: decreases stay eq. 4.2's). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
+lowers a speed; G5 holds back decreases that did not help). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
 |omega_cmd| of 4.2.2) and vertex i, over the latest `guard_trials` trials t:
 
   (G1) of the passes of trial t within guard_radius_m of vertex i (a peak moves a little with speed),
