@@ -274,6 +274,15 @@ def test_a_route_that_got_harder_is_a_new_baseline_not_a_reason_to_stop_learning
     assert mem.baseline.step_scale == 1.0 and mem.baseline.reverted_cost == 0.0
     assert np.abs(mem.w_ff - driven).max() > 0.01                    # learning from the new errors
 
+    # the same, but the estimates' own variance (0.1 m std across the route) gives a trial a cost of 0.01:
+    # the excess 6 * (0.04 - 0.01) / 40 = 0.0045 is within it, not the route's
+    mem, base = guarded_memory()
+    trial(mem, 0.2)
+    for i in range(n):
+        mem.record(i, 0.2 if 10 <= i < 16 else 0.0, 0.0, v_mps=1.0, var_lat_head=(0.01, 0.0))
+    noisy = mem.update(ILCGains(), plant, dist)
+    assert noisy.reverted and not noisy.route_changed and mem.baseline.e_lat_m == base.e_lat_m
+
     mem, base = guarded_memory()
     trial(mem, 0.2)
     shrank = trial(mem, 0.13)

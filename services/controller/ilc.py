@@ -113,14 +113,22 @@ class ILCMemory:
         self._speed = np.zeros(n_vertices)
         self._saturated = np.zeros(n_vertices, dtype=bool)
         self._age = (0.0, 0)         # sum of the estimates' ages, steps
+        self._noise = np.zeros(2)    # sum of the estimates' lateral and heading variances
 
     def record(self, vertex: int, e_lat: float, e_head: float, v_mps: float = 0.0, age_s: float = 0.0,
-               saturated: bool = False) -> None:
+               saturated: bool = False, var_lat_head: tuple[float, float] = (0.0, 0.0)) -> None:
         self._sum[vertex] += (e_lat, e_head)
         self._count[vertex] += 1
         self._speed[vertex] += v_mps
         self._saturated[vertex] |= saturated
         self._age = (self._age[0] + age_s, self._age[1] + 1)
+        self._noise += var_lat_head
+
+    def noise_cost(self, wt: LiftedWeights) -> float:
+        """The trial cost the estimates' own error alone would give (their mean variances, weighted as in
+        trial_cost): a change of cost below it is not the route's."""
+        n = self._age[1]
+        return float(wt.q_lat * self._noise[0] + wt.q_head * self._noise[1]) / n if n else 0.0
 
     @property
     def mean_age_s(self) -> float:
@@ -152,7 +160,7 @@ class ILCMemory:
         b = self.baseline
         worse = (b is not None and gains.revert_margin > 0 and b.comparable(speed)
                  and cost > (1.0 + gains.revert_margin) * b.cost)
-        changed = worse and b.route_changed(cost)
+        changed = worse and b.route_changed(cost, self.noise_cost(wt))
         worse = worse and not changed
         n_sat = int(np.sum(self._saturated & seen))
         if worse:
@@ -198,6 +206,7 @@ class ILCMemory:
         self._speed[:] = 0.0
         self._saturated[:] = False
         self._age = (0.0, 0)
+        self._noise[:] = 0.0
         return change
 
     # --- persistence -------------------------------------------------------------------------
@@ -247,7 +256,8 @@ class ILCLaw:
         kappa = float(ctx.path.curvature[ctx.vertex])
         w_fb = fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.fl)
         w_ff = float(self.memory.w_ff[ctx.vertex])
+        var = (0.0, 0.0) if ctx.pose_cov is None else (float(ctx.pose_cov[1, 1]), float(ctx.pose_cov[2, 2]))
         self.memory.record(ctx.vertex, ctx.e_lat_m, ctx.e_head_rad, ctx.v_mps, ctx.loc_age_s,
-                           saturated=ctx.v_mps > MIN_SPEED_MPS and abs(w_fb + w_ff) > ctx.w_limit)
+                           saturated=ctx.v_mps > MIN_SPEED_MPS and abs(w_fb + w_ff) > ctx.w_limit, var_lat_head=var)
         return LawResult(w_fb + w_ff, feedforward_radps=w_ff)
 

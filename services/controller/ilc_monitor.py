@@ -19,7 +19,10 @@ do what the feedforward asks:
   where it is most needed. A feedforward that made things worse does so less with half the step; the
   route's change does not shrink with it. So a worse trial whose excess cost over the baseline is not
   below WORLD_SHARE of the excess of the trial reverted just before it (driven with twice its step) is
-  accepted as the new baseline: the route changed, not the feedforward.
+  accepted as the new baseline: the route changed, not the feedforward. Unless that excess is smaller
+  than the cost the estimates' own variance gives a trial: the localizer's wandering offset moves a
+  trial's cost by about that much from trial to trial, and a change within it says nothing of the route
+  (at such a noise floor the rule would only learn noise).
 """
 from __future__ import annotations
 
@@ -62,10 +65,13 @@ class ILCBaseline(Message):
     def comparable(self, speed_mps: float) -> bool:
         return abs(speed_mps - self.speed_mps) <= SAME_SPEED * max(self.speed_mps, 1e-3)
 
-    def route_changed(self, cost: float) -> bool:
+    def route_changed(self, cost: float, noise_cost: float = 0.0) -> bool:
         """A worse trial, driven with half the step of the trial reverted before it, whose excess over
-        this baseline did not shrink with the step (module docstring)."""
-        return self.reverted_cost > self.cost and cost - self.cost > WORLD_SHARE * (self.reverted_cost - self.cost)
+        this baseline did not shrink with the step and is larger than `noise_cost`, what the estimates'
+        own error contributes to a trial's cost (module docstring)."""
+        excess = cost - self.cost
+        return (self.reverted_cost > self.cost and excess > WORLD_SHARE * (self.reverted_cost - self.cost)
+                and excess > noise_cost)
 
 
 def trial_cost(e_lat: np.ndarray, e_head: np.ndarray, seen: np.ndarray, wt: LiftedWeights) -> float:
