@@ -217,7 +217,7 @@ class ControllerStatus(Message):
 class NominalModel(Message):
     """The controller's nominal model of one robot, identified from a teach pass (drive lags against
     the wheel odometry, the a-priori uncertainty from the model's residuals on that pass)."""
-    SCHEMA_VERSION = 2    # v2: curvature_rate_max_per_ms
+    SCHEMA_VERSION = 3    # v2: curvature_rate_max_per_ms; v3: turn_gain
     stamp_s: float
     robot: str
     path_id: str                      # the teach pass it was identified on
@@ -237,6 +237,8 @@ class NominalModel(Message):
     samples_w: int
     actuator_tau_s: tuple[float, float]   # the lags the NMPC uses: lag + dead time per channel
     curvature_rate_max_per_ms: float      # Ackermann: the steering's rate limit the NMPC uses (0: none)
+    turn_gain: float                      # the robot's turn rate over the drive's, against the localizer's heading
+    turn_gain_std: float                  # its standard error (0: not identified, 1 kept)
     prior_std_base: tuple[float, float, float]       # uncertainty.PriorStd, body frame (along, lateral, heading)
     prior_std_per_mps: tuple[float, float, float]
     prior_std_per_radps: tuple[float, float, float]
@@ -251,8 +253,10 @@ class NominalModel(Message):
         check_name("model_tag", self.model_tag)
         if self.dt_s <= 0 or min(self.tau_v_s, self.tau_w_s, self.dead_time_v_s, self.dead_time_w_s,
                                  *self.actuator_tau_s, self.curvature_rate_max_per_ms, *self.prior_std_base,
-                                 *self.prior_std_per_mps, *self.prior_std_per_radps) < 0:
+                                 *self.prior_std_per_mps, *self.prior_std_per_radps, self.turn_gain_std) < 0:
             raise ValueError("dt_s > 0 and non-negative time constants, dead times and prior std required")
+        if not self.turn_gain > 0:
+            raise ValueError("turn_gain must be > 0")
 
 
 @dataclass(frozen=True, kw_only=True)

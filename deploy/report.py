@@ -309,15 +309,18 @@ def _model_section(model: dict) -> list[str]:
             "lags the NMPC uses (v, w), s": model["actuator_tau_s"],
             "steering-rate limit the NMPC uses, curvature per s (1/(m s); 0: none)":
                 model.get("curvature_rate_max_per_ms", 0.0),
+            "turn gain: the robot's turn rate over the drive's, against the localizer (+- std)":
+                (model.get("turn_gain", 1.0), model.get("turn_gain_std", 0.0)),
             "a-priori std per period, base (m, m, rad)": model["prior_std_base"],
             "... per m/s": model["prior_std_per_mps"], "... per rad/s": model["prior_std_per_radps"],
             "scale of the default prior, from the teach residuals": model["prior_scale"]}
     rows.update({f"note {i + 1}": n for i, n in enumerate(model.get("notes") or [])})
     return ["<h2>Nominal model</h2><p class=cap>Identified by the controller on the teach pass: each drive "
             "channel's first-order lag, dead time, gain and acceleration limit against the wheel odometry (and an "
-            "Ackermann robot's steering-rate limit, from its limits); the "
+            "Ackermann robot's steering-rate limit, from its limits); the share of the drive's turn rate the "
+            "robot turns at, against the localizer's heading (ground slip, understeer); the "
             "a-priori uncertainty scaled to the model's one-period residuals on that pass. Hand-set "
-            "actuator_tau_s / prior_std_* in [controller.nmpc] override it.</p>", _kv_table(rows)]
+            "actuator_tau_s / turn_gain / prior_std_* in [controller.nmpc] override it.</p>", _kv_table(rows)]
 
 
 def _learning_off_notes(trials: list[dict]) -> list[str]:

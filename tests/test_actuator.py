@@ -182,3 +182,29 @@ def test_the_steering_rate_limit_jacobians_match_finite_differences_and_it_is_th
     np.testing.assert_allclose(lag.turn_rates(small, v2, v2, 0.0)[0], Lk @ small, rtol=3e-3, atol=1e-9)
     assert "-kr370m" in lag.model_tag and "kr" not in ActuatorLag(0.3, 0.15, DT).model_tag
     assert lag.settled((2.0, 0.5)) == (2.0, 0.25) and ActuatorLag(0.3, 0.15, DT).settled((2.0, 0.5)) == (2.0, 0.5)
+
+
+@pytest.mark.parametrize("rate", [0.0, 0.37])
+def test_a_turn_gain_scales_the_robots_turn_rate_not_the_drives(rate):
+    """The robot turns at turn_gain times its drive's turn rate: step(), the matrices and the rate-limited
+    turn rates (with their Jacobians) all scale by it; the drive's state xi does not (the odometry's)."""
+    K, g = 8, 0.62
+    rng = np.random.default_rng(5)
+    w, v = rng.uniform(-0.6, 0.6, K), rng.uniform(0.5, 2.0, K)
+    plain, gained = ActuatorLag(0.3, 0.2, DT, rate), ActuatorLag(0.3, 0.2, DT, rate, g)
+    xi_p, xi_g = (1.0, 0.2), (1.0, 0.2)
+    for k in range(K):
+        (ap, xi_p), (ag, xi_g) = plain.step(xi_p, (v[k], w[k])), gained.step(xi_g, (v[k], w[k]))
+        assert ag[0] == ap[0] and ag[1] == pytest.approx(g * ap[1]) and xi_g == xi_p
+    if rate:
+        vb = plain.matrices(K)[0] @ v
+        out_p, out_g = plain.turn_rates(w, v, vb, 0.1), gained.turn_rates(w, v, vb, 0.1)
+        for a, b in zip(out_p, out_g):
+            np.testing.assert_allclose(b, g * a)
+    else:
+        for a, b, scale in zip(plain.matrices(K), gained.matrices(K), (1.0, 1.0, g, g)):
+            np.testing.assert_allclose(b, scale * a)
+    assert gained.command_for(0.31) == pytest.approx(0.5) and gained.active and ActuatorLag(dt=DT, turn_gain=g).active
+    assert gained.model_tag == plain.model_tag + "-gw620"
+    with pytest.raises(ValueError):
+        ActuatorLag(turn_gain=0.1)

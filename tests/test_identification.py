@@ -12,7 +12,8 @@ from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
 from services.controller.actuator import ActuatorLag
 from services.controller.identification import (DEFAULT_LEVEL, TeachRecorder, TeachResiduals, fit_channel,
-                                                identify, identify_drive, scaled_prior, teach_residuals)
+                                                fit_turn_gain, identify, identify_drive, scaled_prior,
+                                                teach_residuals)
 from services.controller.uncertainty import PriorStd
 from services.localizer.pose_source import PoseSourceSettings
 
@@ -89,7 +90,54 @@ def test_the_teach_pass_identifies_the_simulated_drive(preset, overrides, speed)
     assert m.rate_limit_v_mps2 == pytest.approx(robot.accel_max_mps2, rel=0.05)
     assert m.tau_w_s == pytest.approx(tau_w, rel=0.1)
     assert m.actuator_tau_s == pytest.approx((m.tau_v_s, m.tau_w_s))
-    assert m.model_tag == ActuatorLag(*m.actuator_tau_s, DT).model_tag and not m.notes
+    assert m.model_tag == ActuatorLag(*m.actuator_tau_s, DT, turn_gain=m.turn_gain).model_tag and not m.notes
+
+
+def _turn_share(robot: RobotParams, v: float, w: float) -> float:
+    """The simulator's own share of the drive's turn rate the robot turns at (services/bridge/vehicle.py)."""
+    if robot.drive == "skid":
+        return robot.turn_efficiency / (1.0 + robot.turn_loss_per_mps2 * abs(v * w))
+    return 1.0 / (1.0 + robot.understeer_s2pm2 * v ** 2)
+
+
+@pytest.mark.parametrize("preset, overrides", [
+    ("husky", {}), ("grizzly", {}), ("roc6", {}), ("mats", {}), ("grizzly", {"turn_efficiency": 0.45})])
+@pytest.mark.parametrize("terrain", [[], [SLOPE]], ids=["flat", "slope"])
+def test_the_teach_pass_identifies_how_much_of_its_drives_turn_the_robot_makes(preset, overrides, terrain):
+    """Against the localizer's heading (not the odometry, which cannot see it) the teach pass gives the
+    share of the drive's turn rate the ground lets the robot turn at: the simulator's own share, averaged
+    over the pass as the fit weighs it (by the turn rate squared), within 2 % on flat ground. With the
+    route's first corner on a side slope, whose yaw changes with the heading through the corner, within
+    7 %, where a plain fit of the robot's turn rate against the drive's reads the counter-steer on the
+    slope as a robot that hardly turns (0.52-0.58 against 0.65-0.86)."""
+    robot = robot_from_preset(preset, overrides)
+    cl = ClosedLoop(ROUTE, terrain, preset=robot, seed=1, teach_speed=0.8)
+    drv = PurePursuitDriver(cl.ref, 0.8, cl.robot.max_curvature, cl.robot.w_max_radps)
+    cl.sim.reset(drv.start_pose, 0)
+    cl.source.start_teach(0)
+    rec, shares, weights = TeachRecorder(DT), [], []
+    s = cl.sim.sample()
+    while not (drv.done and abs(s.v_ground) < 1e-3):
+        rec.add_applied(s.tick, s.v_cmd, s.w_cmd)
+        rec.add_odometry(s.tick, s.odom_v, s.odom_w)
+        rec.add_estimate(cl.source.on_truth(truth_of(s, 0), "route"))
+        state = cl.sim.vehicle.s
+        shares.append(_turn_share(robot, state.v_act, state.w_act))
+        weights.append(state.w_act ** 2)
+        cl.sim.command(*drv.command((s.x, s.y, s.theta)))
+        s = cl.sim.step()
+    m = identify(rec, cl.source.finish_teach("route", loop=False, taught_by="test"), "r1", 0.0)
+    truth = float(np.average(shares, weights=weights))
+    assert m.turn_gain == pytest.approx(truth, rel=0.07 if terrain else 0.02)
+    assert 0.0 < m.turn_gain_std < 0.05 and m.model_tag.endswith(f"-gw{round(1000 * m.turn_gain)}")
+
+
+def test_a_route_without_turns_keeps_the_turn_gain_at_one():
+    """Straight residuals say nothing of how the robot turns: gain 1, and a note says why."""
+    rng = np.random.default_rng(2)
+    res = residuals(0.01 * rng.standard_normal((300, 3)), np.column_stack([np.full(300, 0.8), np.zeros(300)]))
+    fit = fit_turn_gain(res)
+    assert fit.gain == 1.0 and fit.std == 0.0 and "too little" in fit.note
 
 
 def test_the_identified_lag_explains_the_teach_pass_better_than_none():
@@ -116,8 +164,9 @@ def test_the_prior_is_scaled_to_the_residuals_spread():
 
 
 def residuals(G, U, step_var=0.0, decorrelated_var=0.0) -> TeachResiduals:
+    """Residuals of a straight route (no turn of the route's in them)."""
     full = lambda v: np.broadcast_to(np.asarray(v, dtype=float), G.shape).copy()   # noqa: E731
-    return TeachResiduals(G, U, full(step_var), full(decorrelated_var))
+    return TeachResiduals(G, U, full(step_var), full(decorrelated_var), U[:, 1] * DT, np.zeros(len(G)))
 
 
 def test_the_localizers_step_noise_lowers_an_inflated_prior_to_the_default_level_at_most():

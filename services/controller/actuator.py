@@ -30,6 +30,13 @@ with rho = (1 - a) / (1 - beta) and sat(x) = x / (1 + (x / c)^6)^(1/6), c = R_ka
 below about half the limit (within 0.3 %), the limit beyond it, and smooth, so the Jacobians the solvers
 use are too. The turn rate follows the speed at a held steering angle, so a robot that slows down in a
 turn turns less without steering, which a turn-rate lag would not know.
+
+The ground turns the robot less than its drive does: a skid-steer's tracks slip sideways in a turn and
+its heading follows a share of the turn rate its wheels make (0.6-0.9 for the heavy ones; ROS's
+diff_drive_controller calls the inverse its wheel separation multiplier), an Ackermann's understeer does
+the same. The lag's output is the drive's turn rate; the robot turns at `turn_gain` times it, a gain the
+teach pass identifies against the localizer's heading (identification.py), not the wheel odometry, which
+cannot see the slip. A law that wants the route's turn rate w commands w / turn_gain (`command_for`).
 """
 from __future__ import annotations
 
@@ -44,6 +51,7 @@ import numpy as np
 V_FLOOR_MPS = 0.02        # a speed command below this steers as at it (kappa_u = w / v)
 SAT_POWER = 6
 RATE_HISTORY_S = 3.0      # a rate-limited drive is replayed this far back (a full swing takes seconds)
+MIN_TURN_GAIN, MAX_TURN_GAIN = 0.2, 2.0
 
 
 def soft_clip(x, c):
@@ -65,15 +73,16 @@ def _coeffs(tau: float, dt: float) -> tuple[float, float]:
 
 
 @lru_cache(maxsize=16)
-def _lag_matrices(v_coeffs: tuple[float, float], w_coeffs: tuple[float, float], K: int) -> tuple[np.ndarray, ...]:
+def _lag_matrices(v_coeffs: tuple[float, float], w_coeffs: tuple[float, float], turn_gain: float,
+                  K: int) -> tuple[np.ndarray, ...]:
     """ActuatorLag.matrices, built once per lag and horizon (every step's problem needs them)."""
     out = []
     j = np.arange(K)
     diff = j[:, None] - j[None, :]
-    for beta, a in (v_coeffs, w_coeffs):
+    for (beta, a), gain in ((v_coeffs, 1.0), (w_coeffs, turn_gain)):
         L = np.where(diff > 0, a * (1.0 - beta) * beta ** np.maximum(diff - 1, 0), 0.0)
         L[j, j] = 1.0 - a
-        out += [L, a * beta ** j]
+        out += [gain * L, gain * a * beta ** j]
     for m in out:
         m.setflags(write=False)
     return tuple(out)
@@ -85,10 +94,13 @@ class ActuatorLag:
     tau_w_s: float = 0.0
     dt: float = 0.1
     curvature_rate_max_per_ms: float = 0.0     # Ackermann: R_kappa, 1/(m s); 0: the turn rate is not limited
+    turn_gain: float = 1.0                     # the robot's turn rate over the drive's (ground slip, understeer)
 
     def __post_init__(self):
         if self.tau_v_s < 0 or self.tau_w_s < 0 or self.dt <= 0 or self.curvature_rate_max_per_ms < 0:
             raise ValueError("actuator time constants and the curvature rate limit must be >= 0, the period > 0")
+        if not MIN_TURN_GAIN <= self.turn_gain <= MAX_TURN_GAIN:
+            raise ValueError(f"turn_gain must be in [{MIN_TURN_GAIN}, {MAX_TURN_GAIN}]")
 
     @property
     def model_tag(self) -> str:
@@ -96,7 +108,8 @@ class ActuatorLag:
         a name: the store keeps each model's experiences apart (common/messages.py Experience.model)."""
         ms = lambda x: int(round(1000 * x))     # noqa: E731
         tag = f"unicycle-dt{ms(self.dt)}ms-tauv{ms(self.tau_v_s)}ms-tauw{ms(self.tau_w_s)}ms"
-        return tag + (f"-kr{ms(self.curvature_rate_max_per_ms)}m" if self.rate_limited else "")
+        tag += f"-kr{ms(self.curvature_rate_max_per_ms)}m" if self.rate_limited else ""
+        return tag + (f"-gw{ms(self.turn_gain)}" if self.turn_gain != 1.0 else "")
 
     @property
     def rate_limited(self) -> bool:
@@ -104,7 +117,11 @@ class ActuatorLag:
 
     @property
     def active(self) -> bool:
-        return self.tau_v_s > 0.0 or self.tau_w_s > 0.0 or self.rate_limited
+        return self.tau_v_s > 0.0 or self.tau_w_s > 0.0 or self.rate_limited or self.turn_gain != 1.0
+
+    def command_for(self, w_radps):
+        """The turn-rate command whose drive response turns the robot at w (settled; floats or arrays)."""
+        return w_radps / self.turn_gain
 
     @property
     def history_periods(self) -> int:
@@ -124,22 +141,24 @@ class ActuatorLag:
         return _coeffs(self.tau_v_s, self.dt), _coeffs(self.tau_w_s, self.dt)
 
     def step(self, xi: tuple[float, float], u: tuple[float, float]) -> tuple[tuple[float, float], tuple[float, float]]:
-        """One period under command u from the drive's state xi: (the period's average speeds, the next xi)."""
+        """One period under command u from the drive's state xi: (the period's average speed and the
+        robot's average turn rate, the next xi)."""
         (bv, av), (bw, aw) = self._both()
         v_avg = av * xi[0] + (1 - av) * u[0]
         xi_v = bv * xi[0] + (1 - bv) * u[0]
+        g = self.turn_gain
         if not self.rate_limited:
-            return (v_avg, aw * xi[1] + (1 - aw) * u[1]), (xi_v, bw * xi[1] + (1 - bw) * u[1])
+            return (v_avg, g * (aw * xi[1] + (1 - aw) * u[1])), (xi_v, bw * xi[1] + (1 - bw) * u[1])
         c = self.curvature_rate_max_per_ms * self.dt
         d = float(soft_clip((1 - bw) * (self._curvature(*u) - xi[1]), c)[0])
-        return (v_avg, v_avg * (xi[1] + (1 - aw) / (1 - bw) * d)), (xi_v, xi[1] + d)
+        return (v_avg, g * v_avg * (xi[1] + (1 - aw) / (1 - bw) * d)), (xi_v, xi[1] + d)
 
     def turn_rates(self, w: np.ndarray, v: np.ndarray, v_avg: np.ndarray,
                    kappa0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """A rate-limited drive over a horizon of commands (v, w) (K,) moved at average speeds v_avg (K,),
-        from the curvature kappa0 the steering has reached: the periods' average turn rates (K,), their
+        from the curvature kappa0 the steering has reached: the robot's average turn rates (K,), their
         derivatives by w and by v (each (K, K), lower triangular, v_avg held) and the periods' average
-        curvatures (K,), the derivative by v_avg (the turn rate is v_avg times them)."""
+        curvatures the robot turns at (K,), the derivative by v_avg (the turn rate is v_avg times them)."""
         bw, aw = self._both()[1]
         g, rho, c = 1.0 - bw, (1.0 - aw) / (1.0 - bw), self.curvature_rate_max_per_ms * self.dt
         K = len(w)
@@ -160,6 +179,8 @@ class ActuatorLag:
         D = np.exp(np.where(below, log_m[:, None] - log_m[None, :], -np.inf)) * (sg / (1.0 - sg + 1e-300))[None, :]
         D *= ((1.0 - rho * sg) * v_avg)[:, None]
         D.flat[::K + 1] = rho * sg * v_avg
+        D *= self.turn_gain
+        kb *= self.turn_gain
         return v_avg * kb, D / v_eff[None, :], D * dku_dv[None, :], kb
 
     def state_before(self, tick: int, command_at: Callable[[int], tuple[float, float] | None]) -> tuple[float, float]:
@@ -179,4 +200,4 @@ class ActuatorLag:
     def matrices(self, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For a horizon of K periods from achieved speeds xi_0: ubar = L u + c xi_0 per axis. Returns
         (L_v, c_v, L_w, c_w), read-only; L lower triangular (K, K), c (K,)."""
-        return _lag_matrices(*self._both(), K)
+        return _lag_matrices(*self._both(), self.turn_gain, K)

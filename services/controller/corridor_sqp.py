@@ -56,7 +56,7 @@ def constrained_residual(p: HorizonProblem, v: np.ndarray, w: np.ndarray, a_out:
     X, Sw, Sv = q.rollout(w, with_jac=True, v=v, with_v_jac=True, a_out=a_out)
     E = q.errors(X)                 # the corridor's frame (taught heading)
     Ec = q.cost_frame(E)            # the cost's (heading against the learned crab)
-    kappa = q.ref.kappa
+    kappa = q.ref.kappa / p.turn_gain      # the commanded turn rate per speed that turns the robot along the route
     u_prev_v, u_prev_w = p.u_prev
     sr, srv, sdr, sdv = math.sqrt(s.r_w), math.sqrt(s.r_v), math.sqrt(s.r_dw), math.sqrt(s.r_dv)
     r = np.concatenate([(Ec * p.sqrt_q).ravel(), sr * (w - v * kappa), srv * (v - p.v),

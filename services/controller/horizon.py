@@ -124,6 +124,7 @@ class HorizonProblem:
         self.sqrt_qt = math.sqrt(settings.q_terminal)
         self.lag: LagTerms | None = None
         self._rate_lag = lag if lag is not None and lag.rate_limited else None   # the turn rate is nonlinear
+        self.turn_gain = 1.0 if lag is None else lag.turn_gain     # the robot's turn rate per commanded
         if lag is not None and lag.active:
             Lv, cv, Lw, cw = lag.matrices(self.K)
             self.lag = LagTerms(Lv, cv * start.xi0[0], Lw, cw * start.xi0[1])

@@ -18,6 +18,17 @@ order); the gain and the acceleration limit are reported, not modelled (slip aga
 learned disturbance's business). An Ackermann robot's turn rate follows its speed (eq. 5.27), so w is
 fitted only where the robot is moving.
 
+Turn gain. The wheel odometry measures the drive's turn rate; the ground turns the robot at a share of
+it (a skid-steer's tracks slip sideways, an Ackermann understeers; actuator.py). That share k is
+identified against the localizer's heading: per period of the teach pass, the heading change of the
+estimates dtheta against the lag model's p = wbar dt (from the commands, gain 1), dtheta = k p + d. A
+plain fit of k would be biased by d, the heading the ground pushes (a side slope's yaw, ruts): the
+teach driver counter-steers it, so p and d move together, and on a slope crossed straight the fit would
+read the counter-steer as a robot that does not turn. The route's own turn over the period, z =
+kappa(s) vbar dt, is the instrument: it is where the route turns, not where the ground pushes, so
+k = sum(z dtheta) / sum(z p), the straight stretches (z = 0) left out whatever is pushed there. A route
+turning less than MIN_TURN_RAD in all keeps k = 1.
+
 A-priori uncertainty. The identified model's one-period residuals on the teach pass, g_k (eq. 5.17,
 body frame, from the teach pass's pose estimates and the commands), give its scale: the prior keeps
 the shape std = base + per_mps |v| + per_radps |w| (uncertainty.PriorStd: errors grow with the distance
@@ -47,14 +58,14 @@ fits (docs/results.md, stop 39).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from common.messages import LocState, NominalModel
 from common.path import Path
-from services.controller.actuator import ActuatorLag
+from services.controller.actuator import MAX_TURN_GAIN, MIN_TURN_GAIN, ActuatorLag
 from services.controller.experience import ExperienceBuilder
 from services.controller.uncertainty import PriorStd
 
@@ -68,6 +79,10 @@ MIN_SAMPLES = 20
 DEFAULT_LEVEL = 1.0
 # a channel whose command hardly changed says nothing about its dynamics
 MIN_EXCITATION = {"v": 0.01, "w": 0.01}     # m/s, rad/s (std of the command)
+# the turn gain needs turns: at least this much turning of the route in the residuals (rad), and a
+# standard error below MAX_TURN_GAIN_STD; a gain outside the model's bounds is not believed
+MIN_TURN_RAD = math.pi / 2
+MAX_TURN_GAIN_STD = 0.1
 
 
 @dataclass(frozen=True)
@@ -279,6 +294,8 @@ class TeachResiduals:
     u: np.ndarray                   # (m, 2)
     step_var: np.ndarray            # (m, 3)
     decorrelated_var: np.ndarray    # (m, 3)
+    turn_model: np.ndarray          # (m,) the heading change the model predicted over the period (rad)
+    turn_route: np.ndarray          # (m,) the route's turn over the period at the model's speed (rad)
 
     def __len__(self) -> int:
         return len(self.g)
@@ -298,7 +315,7 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
     """The nominal model's one-period residuals on the teach pass from the teach estimates (made
     relative to the taught route), with the localizer's share of them."""
     builder = ExperienceBuilder(path, rec.dt, lag=lag)
-    G, U, step, decorrelated = [], [], [], []
+    G, U, step, decorrelated, turn_model, turn_route = [], [], [], [], [], []
     for tick in sorted(rec.estimates):
         loc = rec.estimates[tick]
         if loc.vertex >= len(path):
@@ -310,13 +327,44 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
         if obs is not None:
             G.append(obs.g)
             U.append(obs.a[5:7])
+            vb, wb = lag.step(lag.state_before(tick - 1, builder.command_at), obs.a[5:7])[0]
+            turn_model.append(wb * rec.dt)
+            turn_route.append(float(np.interp(obs.a[0], path.s, path.curvature)) * vb * rec.dt)
             before = rec.estimates.get(tick - 1)
             known = loc.cov_step_T_vertex_robot is not None and before is not None
             step.append(_body_variance(loc, loc.cov_step_T_vertex_robot) if known else np.zeros(3))
             decorrelated.append(_body_variance(loc, loc.cov_T_vertex_robot) + _body_variance(before, before.cov_T_vertex_robot)
                                 if known else np.zeros(3))
     as_array = lambda rows, n: np.array(rows, dtype=float).reshape(-1, n)   # noqa: E731
-    return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3))
+    return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3),
+                          np.array(turn_model, dtype=float), np.array(turn_route, dtype=float))
+
+
+@dataclass(frozen=True)
+class TurnGain:
+    gain: float
+    std: float          # standard error (0: not identified)
+    note: str = ""
+
+
+def fit_turn_gain(res: TeachResiduals) -> TurnGain:
+    """The robot's turn rate over the drive's from residuals of a gain-1 model (module docstring):
+    k = sum(z dtheta) / sum(z p), z the route's turn as the instrument, with its standard error."""
+    z, p = res.turn_route, res.turn_model
+    turned = float(np.sum(np.abs(z)))
+    if turned < MIN_TURN_RAD:
+        return TurnGain(1.0, 0.0, f"turn gain: the route turns {math.degrees(turned):.0f} deg in all, too "
+                                  f"little to identify it: 1 kept")
+    dtheta = p + res.g[:, 2]
+    zp = float(np.dot(z, p))
+    if not zp > 0.0:
+        return TurnGain(1.0, 0.0, "turn gain: the commands did not turn with the route: 1 kept")
+    k = float(np.dot(z, dtheta)) / zp
+    e = dtheta - k * p
+    std = math.sqrt(float(np.mean(e ** 2)) * float(np.dot(z, z))) / zp
+    if not (MIN_TURN_GAIN <= k <= MAX_TURN_GAIN and std <= MAX_TURN_GAIN_STD):
+        return TurnGain(1.0, 0.0, f"turn gain {k:.2f} +- {std:.2f} not believed: 1 kept")
+    return TurnGain(k, std)
 
 
 def _body_variance(loc: LocState, cov: tuple[float, ...] | None) -> np.ndarray:
@@ -391,6 +439,13 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
     lag = drive.lag(rec.dt, curvature_rate_max_per_ms)
     res = teach_residuals(rec, path, lag)
     notes = list(drive.notes)
+    turn = TurnGain(1.0, 0.0)
+    if len(res) >= MIN_SAMPLES:
+        turn = fit_turn_gain(res)
+        notes += [turn.note] if turn.note else []
+        if turn.gain != 1.0:
+            lag = replace(lag, turn_gain=turn.gain)
+            res = teach_residuals(rec, path, lag)
     if len(res) >= MIN_SAMPLES:
         prior, scale = scaled_prior(res, shape)
         factors = horizon_factors(res, prior)
@@ -410,6 +465,7 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         fit_rmse_v_mps=fit(drive.v, "rmse", 0.0), fit_rmse_w_radps=fit(drive.w, "rmse", 0.0),
         samples_v=fit(drive.v, "samples", 0), samples_w=fit(drive.w, "samples", 0),
         actuator_tau_s=(lag.tau_v_s, lag.tau_w_s), curvature_rate_max_per_ms=lag.curvature_rate_max_per_ms,
+        turn_gain=lag.turn_gain, turn_gain_std=turn.std,
         prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
         prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
         spread_factors=[float(f) for f in factors], residual_samples=len(res), notes=notes)

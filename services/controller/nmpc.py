@@ -73,7 +73,7 @@ def _carry_through_delay(ctx: StepContext, dt: float, model: DisturbanceModel | 
 
 
 def crab_offsets(model: DisturbanceModel, s_d: np.ndarray, taught: np.ndarray, tangent: np.ndarray, v: np.ndarray,
-                 w_ref: np.ndarray, dt: float, passes: int = 3, min_speed_mps: float = 0.2,
+                 w_ref: np.ndarray, dt: float, turn_gain: float = 1.0, passes: int = 3, min_speed_mps: float = 0.2,
                  max_offset_rad: float = 0.2) -> np.ndarray:
     """(K,) the heading, relative to the taught heading, at which the learned model has x_1..x_K move
     along the route. Where the robot slides sideways (a side slope), holding the route takes a crab
@@ -81,22 +81,22 @@ def crab_offsets(model: DisturbanceModel, s_d: np.ndarray, taught: np.ndarray, t
     crab of the teach speed. Weighed against it, a robot repeating faster is pulled uphill of the route
     (and the terminal lookahead, extrapolating along a heading that is not its course, adds to it): a
     steady offset that appeared exactly when the model became accurate. Per desired pose the model is
-    asked at the route pose (lateral error 0) driving the route's turn rate with its heading
-    disturbance compensated; crab, command and speed are settled by a few fixed-point passes (all
+    asked at the route pose (lateral error 0) driving the route's turn rate (commanded `w_ref`, turned at
+    `turn_gain` times it, actuator.py) with its heading disturbance compensated; crab, command and speed are settled by a few fixed-point passes (all
     poses in one batch each). Below `min_speed_mps` (stopping) there is no course to hold: 0."""
     K = len(v)
     idx = np.minimum(np.arange(1, K + 1), K - 1)     # the inputs leaving x_j (the last repeats)
     vj, wr = np.asarray(v, dtype=float)[idx], np.asarray(w_ref, dtype=float)[idx]
     A = np.zeros((K, 9))
     A[:, 0] = s_d[1:]
-    A[:, 3], A[:, 4], A[:, 5], A[:, 6], A[:, 7], A[:, 8] = vj, wr, vj, wr, vj, wr
+    A[:, 3], A[:, 4], A[:, 5], A[:, 6], A[:, 7], A[:, 8] = vj, turn_gain * wr, vj, wr, vj, wr
     e_h = np.zeros(K)
     for _ in range(passes):
         g = model.mean(A)
         crab = -np.arctan2(g[:, 1], np.maximum(vj * dt + g[:, 0], 0.5 * vj * dt))
         e_h = np.remainder(tangent[1:] + crab - taught[1:, 2] + math.pi, 2 * math.pi) - math.pi
         A[:, 2] = e_h
-        A[:, 6] = A[:, 8] = wr - g[:, 2] / dt          # the command that cancels the heading disturbance
+        A[:, 6] = A[:, 8] = wr - g[:, 2] / (dt * turn_gain)   # the command that cancels the heading disturbance
         A[:, 3] = vj + g[:, 0] / dt
     e_h = np.clip(e_h, -max_offset_rad, max_offset_rad)
     e_h[vj < min_speed_mps] = 0.0
@@ -127,9 +127,10 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
     v, s_d = _profile(ctx, s0, settings.horizon, dt, lag)
     ref = reference_at(ctx.path, s_d)
     x0[2] = ref.poses[0, 2] + math.remainder(x0[2] - ref.poses[0, 2], 2 * math.pi)
-    w_ref = v * ref.kappa
+    w_ref = lag.command_for(v * ref.kappa)
     if model is not None and settings.crab_reference:
-        ref = replace(ref, head_offset=crab_offsets(model, s_d, ref.poses, ref.direction_rad, v, w_ref, dt))
+        ref = replace(ref, head_offset=crab_offsets(model, s_d, ref.poses, ref.direction_rad, v, w_ref, dt,
+                                                    lag.turn_gain))
     start = HorizonStart(x0=x0, v_prev_act=v_prev, u_prev=u_prev, xi0=ctx.xi_now, delay=delay)
     problem = HorizonProblem(start, ref, v, w_ref, dt, settings, model, ctx.path, lag)
     return problem, np.array([ctx.w_limit_at(vj) for vj in v])

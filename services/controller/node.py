@@ -195,6 +195,7 @@ class ControllerService(Service):
         self.node.publish(keys.ctrl_model(self.cfg.robot_name, model.path_id), model)
         tau = model.actuator_tau_s
         return self.reply(ctl, True, f"nominal model {model.model_tag}: drive lags {tau[0]:.2f} / {tau[1]:.2f} s, "
+                          f"turns at {model.turn_gain:.2f} of its drive, "
                           f"prior x{model.prior_scale[0]:.2f} / {model.prior_scale[1]:.2f} / {model.prior_scale[2]:.2f} "
                           f"of the default" + "".join(f"; {n}" for n in model.notes))
 

@@ -3,13 +3,16 @@ its end (identification.py), kept on disk (one file per route, written atomicall
 and restarts use it."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path as FsPath
 
 from common.atomic_file import write_atomically
-from common.codec import decode, encode
+from common.codec import DecodeError, decode, encode
 from common.messages import BridgeStatus, LocState, NominalModel, Odometry, check_name
 from common.path import Path
 from services.controller.identification import TeachRecorder, identify
+
+log = logging.getLogger(__name__)
 
 
 def model_file(directory: str | FsPath, path_id: str) -> FsPath:
@@ -59,9 +62,15 @@ class NominalModels:
         return model
 
     def of(self, path_id: str) -> NominalModel | None:
-        """The route's identified model, or None when it was not taught here."""
+        """The route's identified model, or None when it was not taught here (or by an older version,
+        whose model lacks what this one identifies: teach the route again)."""
         if path_id not in self._known and self.directory is not None:
             f = model_file(self.directory, path_id)
             if f.exists():
-                self._known[path_id] = decode(NominalModel, f.read_bytes())
+                try:
+                    self._known[path_id] = decode(NominalModel, f.read_bytes())
+                except DecodeError as exc:
+                    log.warning("%s not used (%s): the route runs on the default model until it is taught again",
+                                f, exc)
+                    return None
         return self._known.get(path_id)

@@ -167,7 +167,8 @@ class RCLBNMPCLaw:
         if gp is not None and s.crab_reference:    # the learned crab at the speeds this step starts from
             ref = problem.ref
             problem = problem.with_head_offset(crab_offsets(gp, ref.s_m, ref.poses, ref.direction_rad, v,
-                                                            v * ref.kappa, dt))
+                                                            v * ref.kappa / problem.turn_gain, dt,
+                                                            problem.turn_gain))
         sig = rung.sig if rung is not None else np.zeros((base.K, 3))
         nlp = CorridorNLP(problem, lo_lat, hi_lat, head_lim, cap, self.alpha, sig, np.zeros((base.K, base.K)), v,
                           v_max, ctx.w_limit_at)

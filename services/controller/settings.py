@@ -4,13 +4,13 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from common.messages import NominalModel
-from services.controller.actuator import ActuatorLag
+from services.controller.actuator import MAX_TURN_GAIN, MIN_TURN_GAIN, ActuatorLag
 from services.controller.uncertainty import VOUCH_SCALES, PriorStd
 
 _PRIOR = PriorStd()
 # the settings a teach pass identifies unless they are set by hand (NominalModel has the same names)
 PRIOR = ("prior_std_base", "prior_std_per_mps", "prior_std_per_radps")
-IDENTIFIED = ("actuator_tau_s", "curvature_rate_max_per_ms") + PRIOR
+IDENTIFIED = ("actuator_tau_s", "curvature_rate_max_per_ms", "turn_gain") + PRIOR
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -57,6 +57,10 @@ class NMPCSettings:
     # Ackermann: the steering's rate limit as curvature per second, 1/(m s) (actuator.py); 0: no limit.
     # None: the robot's, as the teach pass's model carries it (identification.py), or none without one
     curvature_rate_max_per_ms: float | None = None
+    # the robot's turn rate over the drive's: what ground slip (a skid-steer's) or understeer leave of a
+    # turn (actuator.py); 1: none. None: identified from the route's teach pass against the localizer's
+    # heading (identification.py), or 1 without one
+    turn_gain: float | None = None
     # with a learned model, weigh the heading error against the crab angle the model needs to hold the
     # route at the planned speed (nmpc.crab_offsets), not the taught heading, which holds the teach
     # speed's crab: for repeats well above the teach speed on ground that slides the robot sideways
@@ -81,6 +85,8 @@ class NMPCSettings:
             object.__setattr__(self, "actuator_tau_s", tau)
         if self.curvature_rate_max_per_ms is not None and self.curvature_rate_max_per_ms < 0:
             raise ValueError("curvature_rate_max_per_ms must be >= 0 (0: no limit)")
+        if self.turn_gain is not None and not MIN_TURN_GAIN <= self.turn_gain <= MAX_TURN_GAIN:
+            raise ValueError(f"turn_gain must be in [{MIN_TURN_GAIN}, {MAX_TURN_GAIN}] (1: the robot turns as its drive)")
         if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(
                 self.q_along, self.q_lat, self.q_head, self.r_w, self.r_dw, self.q_terminal, self.lookahead_m) < 0:
             raise ValueError("horizon, max_iter >= 1, max_evals >= 2 and non-negative weights required")
@@ -91,7 +97,8 @@ class NMPCSettings:
 
     def lag(self, dt: float) -> ActuatorLag:
         tau = self.actuator_tau_s or (0.0, 0.0)
-        return ActuatorLag(tau[0], tau[1], dt, self.curvature_rate_max_per_ms or 0.0)
+        return ActuatorLag(tau[0], tau[1], dt, self.curvature_rate_max_per_ms or 0.0,
+                           1.0 if self.turn_gain is None else self.turn_gain)
 
     @property
     def prior_is_identified(self) -> bool:

@@ -49,7 +49,8 @@ def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: H
     p = base.following(vk)
     # same path: corrections scaled down with speed, never up (a correction made at a crawl is a turn on
     # the spot, which no faster rung could drive)
-    wk = vk * p.ref.kappa + (w - v * base.ref.kappa) * np.minimum(1.0, vk / np.maximum(v, 1e-3))
+    wk = (vk * p.ref.kappa + (w * base.turn_gain - v * base.ref.kappa) * np.minimum(1.0, vk / np.maximum(v, 1e-3))
+          ) / base.turn_gain
     X = p.rollout(wk, with_jac=True, v=vk, with_v_jac=True, a_out=a_out)[0]
     Sig, sig = cov.along(p, X, a_out, vk, wk)
     loc = cov.localizer_part(X, p.ref.direction_rad[1:])

@@ -85,7 +85,7 @@ class PathTracker:
         self._prev_pose: tuple[int, np.ndarray] | None = None   # (capture tick, pose) one estimate back
         self._initial_error: tuple[float, float] | None = None
         self._last_cmd = (0.0, 0.0)
-        self._fallback = FLLaw(FLGains())
+        self._fallback = FLLaw(FLGains(), lag.turn_gain)
 
     def scheduled_speed(self, distance_m: float) -> float:
         """Speed at a place on the route: the schedule's speed at the nearest vertex (thesis 5.3.1:
@@ -215,6 +215,7 @@ class PathTracker:
         kappa = float(np.interp(dist, self.path.s, self.path.curvature))
         c = fl_angular_rate(rolling, lat, head, kappa, self._fallback.gains) / rolling
         c = max(kappa - BRAKE_CURVATURE_PER_M, min(kappa + BRAKE_CURVATURE_PER_M, c))
+        c = self.lag.command_for(c)        # the curvature commanded for the robot's to be c
         c = max(-self.limits.max_curvature, min(self.limits.max_curvature, c))
         if math.isfinite(self.limits.max_curvature):
             v = max(v, CREEP_MPS)
