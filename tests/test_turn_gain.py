@@ -8,7 +8,7 @@ import pytest
 from bench.closed_loop import ClosedLoop
 from common.robot import robot_from_preset
 from services.controller.actuator import ActuatorLag
-from services.controller.fl import FLGains
+from services.controller.fl import FLGains, route_turn_rate
 from services.controller.ilc import ILCLaw, ILCMemory
 from services.controller.laws import FLLaw
 from services.controller.nmpc import LBNMPCLaw
@@ -41,17 +41,25 @@ def test_a_law_that_knows_the_turn_gain_holds_the_corners(name, make_law):
     assert aware < 0.6 * unaware, (name, aware, unaware)
 
 
-def test_fl_and_ilc_command_the_robots_wanted_turn_rate_over_the_gain():
-    """Eq. 3.5 gives the robot's turn rate; the drive is asked for it over the gain, the feedforward too."""
-    from services.controller.laws import StepContext
+def test_fl_and_ilc_ask_the_drive_for_the_routes_turn_rate_over_the_gain():
+    """Eq. 3.5's route turn rate is asked of the drive over the gain; the feedback and the learned
+    feedforward are commands as they were (fl.py)."""
     from common.path import Path
-    path = Path("p", np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)]))
-    ctx = StepContext(now_s=0.0, path=path, vertex=3, pose=np.array([3.0, 0.2, 0.1]), s_m=3.0, e_lat_m=0.2,
-                      e_head_rad=0.1, v_mps=1.0, speed_at=lambda s: 1.0, prev_cmd=(1.0, 0.0), prev_pose=None,
+    from services.controller.laws import StepContext
+    from services.bridge.teach_driver import smooth_waypoints
+    path = Path("p", smooth_waypoints([[0.0, 0.0], [6.0, 0.0], [6.0, 6.0]], 3.0, False))
+    i = int(np.argmax(np.abs(path.curvature)))
+    kappa = float(path.curvature[i])
+    assert abs(kappa) > 0.01
+    ctx = StepContext(now_s=0.0, path=path, vertex=i, pose=path.poses[i], s_m=float(path.s[i]), e_lat_m=0.0,
+                      e_head_rad=0.0, v_mps=1.0, speed_at=lambda s: 1.0, prev_cmd=(1.0, 0.0), prev_pose=None,
                       w_limit=5.0, w_limit_at=lambda v: 5.0)
-    w1 = FLLaw(FLGains()).angular(ctx).w_radps
-    assert FLLaw(FLGains(), 0.5).angular(ctx).w_radps == pytest.approx(2.0 * w1)
-    mem = ILCMemory("p", 10)
-    mem.w_ff[3] = 0.1
-    res = ILCLaw(FLGains(), mem, 0.5).angular(ctx)
-    assert res.w_radps == pytest.approx(2.0 * (w1 + 0.1)) and res.feedforward_radps == pytest.approx(0.2)
+    assert FLLaw(FLGains(), 0.5).angular(ctx).w_radps == pytest.approx(2.0 * kappa)
+    moved = StepContext(**{**ctx.__dict__, "e_lat_m": 0.2})
+    fb = FLLaw(FLGains(curvature_feedforward=False)).angular(moved).w_radps
+    route = route_turn_rate(1.0, 0.2, 0.0, kappa)
+    assert FLLaw(FLGains(), 0.5).angular(moved).w_radps == pytest.approx(fb + 2.0 * route)
+    mem = ILCMemory("p", len(path))
+    mem.w_ff[i] = 0.1
+    res = ILCLaw(FLGains(), mem, 0.5).angular(moved)
+    assert res.w_radps == pytest.approx(fb + 2.0 * route + 0.1) and res.feedforward_radps == pytest.approx(0.1)

@@ -12,7 +12,13 @@ the stable linear error dynamics of eq. 3.4 and
 
 where w_ref = v kappa cos e_H / (1 - kappa e_L) is the route's own turn rate. The thesis leaves w_ref
 to the feedforward term (ILC learns it); we include it by default (`curvature_feedforward`) because a
-tracker without it settles at e_L = -v^2 kappa / g1 on every arc. Note the thesis writes e_L = y_d - y
+tracker without it settles at e_L = -v^2 kappa / g1 on every arc.
+
+A robot that turns at a share k of its drive's turn rate (a skid-steer's ground slip, actuator.py
+turn_gain) is asked for w_ref / k, so it turns at the route's rate. The feedback is not divided by k: the
+gains then act at k times their value, and restoring them made a 47 %-turning Grizzly with a 0.3 s drive
+lag and a 0.16 s old estimate cycle +-60 deg at 1.2 m/s (docs/results.md, stop 44): eq. 3.4's poles
+placed without the lag and the delay leave the loop too little phase margin once its gain is whole. Note the thesis writes e_L = y_d - y
 and e_H = theta_d - theta; the signs above are that law rederived in our convention.
 """
 from __future__ import annotations
@@ -39,12 +45,15 @@ def route_turn_rate(v: float, e_L: float, e_H: float, kappa: float) -> float:
     return v * kappa * math.cos(e_H) / denom
 
 
-def fl_angular_rate(v: float, e_L: float, e_H: float, kappa: float, gains: FLGains, v_min: float = 0.05) -> float:
-    """Commanded angular rate (rad/s) from lateral/heading errors; eq. 3.5 in our sign convention."""
+def fl_angular_rate(v: float, e_L: float, e_H: float, kappa: float, gains: FLGains, v_min: float = 0.05,
+                    turn_gain: float = 1.0) -> float:
+    """Commanded angular rate (rad/s) from lateral/heading errors; eq. 3.5 in our sign convention. A robot
+    that turns at `turn_gain` times its drive's rate (actuator.py) is asked for the route's own rate over
+    it; the feedback stays as tuned (module docstring)."""
     v_eff = math.copysign(max(abs(v), v_min), v if v != 0 else 1.0)
     cos_h = math.cos(e_H)
     cos_h = math.copysign(max(abs(cos_h), 0.2), cos_h if cos_h != 0 else 1.0)  # singular at 90 deg
     w = (-gains.gamma1 * e_L - gains.gamma2 * v_eff * math.sin(e_H)) / (v_eff * cos_h)
     if gains.curvature_feedforward:
-        w += route_turn_rate(v, e_L, e_H, kappa)
+        w += route_turn_rate(v, e_L, e_H, kappa) / turn_gain
     return w

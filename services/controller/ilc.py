@@ -251,17 +251,15 @@ class ILCLaw:
     def __init__(self, fl: FLGains, memory: ILCMemory, turn_gain: float = 1.0):
         self.fl = fl
         self.memory = memory
-        # feedback and feedforward are the robot's turn rates; the command is their sum over the robot's
-        # turn rate per commanded (actuator.py), so the lifted model's loop (ilc_lifted.py) is the nominal one
-        self.turn_gain = turn_gain
+        self.turn_gain = turn_gain      # the robot's turn rate per commanded (actuator.py; fl.py, ILCPlant)
 
     def angular(self, ctx: StepContext) -> LawResult:
         kappa = float(ctx.path.curvature[ctx.vertex])
-        w_fb = fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.fl)
+        w_fb = fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.fl, turn_gain=self.turn_gain)
         w_ff = float(self.memory.w_ff[ctx.vertex])
-        w = (w_fb + w_ff) / self.turn_gain
+        w = w_fb + w_ff
         var = (0.0, 0.0) if ctx.pose_cov is None else (float(ctx.pose_cov[1, 1]), float(ctx.pose_cov[2, 2]))
         self.memory.record(ctx.vertex, ctx.e_lat_m, ctx.e_head_rad, ctx.v_mps, ctx.loc_age_s,
                            saturated=ctx.v_mps > MIN_SPEED_MPS and abs(w) > ctx.w_limit, var_lat_head=var)
-        return LawResult(w, feedforward_radps=w_ff / self.turn_gain)
+        return LawResult(w, feedforward_radps=w_ff)
 

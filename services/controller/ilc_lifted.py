@@ -9,9 +9,10 @@ few vertices, it does not on a robot whose drive lags 0.2-0.5 s, behind a 0.1-0.
 Here B is built from a model of the closed loop the feedforward acts on, per vertex interval
 (Delta t_i = d_i / v_i at the speed the trial passed there):
 
-    e_L' = p2,   p2' = v delta,   delta' = (yhat / v + w_ff - delta) / tau_w,   z' = (2 / D)(y - z)
+    e_L' = p2,   p2' = v delta,   delta' = (k (yhat / v + w_ff) - delta) / tau_w,   z' = (2 / D)(y - z)
 
-with p2 = v sin e_H (eq. 3.4), delta the drive's achieved turn rate less the route's, tau_w the identified
+with p2 = v sin e_H (eq. 3.4), delta the robot's turn rate less the route's, k the share of the drive's
+turn rate the robot turns at (actuator.py turn_gain; FL asks for the route's rate over it), tau_w the identified
 lag of the turn-rate drive (actuator.py), y = -gamma1 e_L - gamma2 p2 the feedback of eq. 3.5 and
 yhat = 2 z - y its value D seconds late (first-order Pade: the estimate's age). Discretized exactly over
 each interval (zero-order hold on w_ff,i), stacked into the lifted G (eq. 3.8) for e_L and e_H = p2 / v
@@ -41,6 +42,7 @@ class ILCPlant:
     fl: FLGains
     tau_w_s: float = 0.0        # the turn-rate drive's first-order lag (identified; dead time included)
     delay_s: float = 0.0        # the estimate's age when the feedback uses it
+    turn_gain: float = 1.0      # the robot's turn rate over the drive's (actuator.py): on feedback and feedforward
 
 
 def _continuous(v: float, plant: ILCPlant) -> tuple[np.ndarray, np.ndarray]:
@@ -57,10 +59,11 @@ def _continuous(v: float, plant: ILCPlant) -> tuple[np.ndarray, np.ndarray]:
     A = np.zeros((4, 4))
     A[0, 1] = 1.0
     A[1, 2] = v
-    A[2] = yhat / (v * tau)
+    k = plant.turn_gain
+    A[2] = k * yhat / (v * tau)
     A[2, 2] -= 1.0 / tau
     A[3] = z_row
-    B = np.array([0.0, 0.0, 1.0 / tau, 0.0])
+    B = np.array([0.0, 0.0, k / tau, 0.0])
     return A, B
 
 

@@ -100,8 +100,9 @@ class FLLaw:
 
     def __init__(self, gains: FLGains, turn_gain: float = 1.0):
         self.gains = gains
-        self.turn_gain = turn_gain      # the robot's turn rate per commanded (actuator.py): eq. 3.5 asks for the robot's
+        self.turn_gain = turn_gain      # the robot's turn rate per commanded (actuator.py; fl.py)
 
     def angular(self, ctx: StepContext) -> LawResult:
         kappa = float(ctx.path.curvature[ctx.vertex])
-        return LawResult(fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.gains) / self.turn_gain)
+        return LawResult(fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.gains,
+                                         turn_gain=self.turn_gain))

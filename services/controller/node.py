@@ -259,7 +259,8 @@ class ControllerService(Service):
         identified one unless set by hand) and the estimates' mean age."""
         if not self.learning:
             return "ILC learning off: feedforward unchanged"
-        plant = ILCPlant(self.gains, tau_w_s=core.tracker.lag.tau_w_s, delay_s=self.ilc.mean_age_s)
+        plant = ILCPlant(self.gains, tau_w_s=core.tracker.lag.tau_w_s, delay_s=self.ilc.mean_age_s,
+                         turn_gain=core.tracker.lag.turn_gain)
         update = self.ilc.update(self.cfg.ilc, plant, np.diff(core.path.s))
         where = self.ilc.save(FsPath(self.cfg.data_dir) / "ilc")
         return f"ILC feedforward updated (trial {self.ilc.trials}, {update.describe()}), saved as {where.name}"

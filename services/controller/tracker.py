@@ -213,9 +213,9 @@ class PathTracker:
             return None
         _, dist, lat, head = self.route_errors(last)
         kappa = float(np.interp(dist, self.path.s, self.path.curvature))
-        c = fl_angular_rate(rolling, lat, head, kappa, self._fallback.gains) / rolling
+        c = fl_angular_rate(rolling, lat, head, kappa, self._fallback.gains, turn_gain=self.lag.turn_gain) / rolling
+        kappa = self.lag.command_for(kappa)      # the curvature commanded for the robot's to be the route's
         c = max(kappa - BRAKE_CURVATURE_PER_M, min(kappa + BRAKE_CURVATURE_PER_M, c))
-        c = self.lag.command_for(c)        # the curvature commanded for the robot's to be c
         c = max(-self.limits.max_curvature, min(self.limits.max_curvature, c))
         if math.isfinite(self.limits.max_curvature):
             v = max(v, CREEP_MPS)
