@@ -137,7 +137,7 @@ def test_a_route_without_turns_keeps_the_turn_gain_at_one():
     rng = np.random.default_rng(2)
     res = residuals(0.01 * rng.standard_normal((300, 3)), np.column_stack([np.full(300, 0.8), np.zeros(300)]))
     fit = fit_turn_gain(res)
-    assert fit.gain == 1.0 and fit.std == 0.0 and "too little" in fit.note
+    assert fit.gain == 1.0 and fit.std == 0.0 and "no corner" in fit.note
 
 
 def test_the_identified_lag_explains_the_teach_pass_better_than_none():
@@ -166,7 +166,8 @@ def test_the_prior_is_scaled_to_the_residuals_spread():
 def residuals(G, U, step_var=0.0, decorrelated_var=0.0) -> TeachResiduals:
     """Residuals of a straight route (no turn of the route's in them)."""
     full = lambda v: np.broadcast_to(np.asarray(v, dtype=float), G.shape).copy()   # noqa: E731
-    return TeachResiduals(G, U, full(step_var), full(decorrelated_var), U[:, 1] * DT, np.zeros(len(G)))
+    return TeachResiduals(G, U, full(step_var), full(decorrelated_var), U[:, 1] * DT, np.zeros(len(G)),
+                          np.zeros(len(G)))
 
 
 def test_the_localizers_step_noise_lowers_an_inflated_prior_to_the_default_level_at_most():
@@ -232,8 +233,9 @@ def test_a_noisy_localizer_does_not_inflate_the_prior_above_the_default(noise_m)
 @pytest.mark.integration
 def test_the_controller_identifies_its_model_on_the_teach_pass_and_learns_under_it(tmp_path, scenario_file):
     """Through the real services: the teach pass gives the ROC6's drive lags (0.25 s each in the
-    simulator), summary.json reports them, and the experiences of the repeat are residuals of that
-    model (they carry its name, so the store keeps them apart from other models')."""
+    simulator) and the share of its drive's turn it makes (0.75 at low speed), summary.json reports them,
+    and the experiences of the repeat are residuals of that model (they carry its name, so the store
+    keeps them apart from other models')."""
     import json
     import os
 
@@ -250,7 +252,8 @@ def test_the_controller_identifies_its_model_on_the_teach_pass_and_learns_under_
     run_experiment(scenario, out, progress_stream=open(os.devnull, "w"))
     model = json.loads((out / "summary.json").read_text())["identified_model"]
     assert model["tau_v_s"] == pytest.approx(0.25, rel=0.3) and model["tau_w_s"] == pytest.approx(0.25, rel=0.2)
-    assert model["model_tag"] == ActuatorLag(*model["actuator_tau_s"], DT).model_tag
+    assert model["turn_gain"] == pytest.approx(0.75, rel=0.08) and model["turn_gain_std"] > 0.0
+    assert model["model_tag"] == ActuatorLag(*model["actuator_tau_s"], DT, turn_gain=model["turn_gain"]).model_tag
     tags = set()
     with open(out / "run.mcap", "rb") as fh:
         for _s, _c, message in make_reader(fh).iter_messages(topics=[keys.experience("r1")]):

@@ -37,6 +37,9 @@ def _max_lateral(make_law, gain: float) -> float:
     ("ilc", lambda g, path: ILCLaw(FLGains(), ILCMemory("route", len(path)), g)),
     ("lb-nmpc", lambda g, path: LBNMPCLaw(NMPCSettings(actuator_tau_s=(0.45, 0.4), turn_gain=g), 0.1))])
 def test_a_law_that_knows_the_turn_gain_holds_the_corners(name, make_law):
+    """A Grizzly turning at half its drive's rate, 1.2 m/s, no learning yet: FL and ILC (trial 1) 0.55 ->
+    0.25 m, the route's own turn rate asked of the drive over the gain; LB-NMPC 0.24 -> 0.025 m, its
+    model turning as the robot does."""
     unaware, aware = _max_lateral(make_law, 1.0), _max_lateral(make_law, SHARE)
     assert aware < 0.6 * unaware, (name, aware, unaware)
 

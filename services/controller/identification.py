@@ -25,9 +25,13 @@ estimates dtheta against the lag model's p = wbar dt (from the commands, gain 1)
 plain fit of k would be biased by d, the heading the ground pushes (a side slope's yaw, ruts): the
 teach driver counter-steers it, so p and d move together, and on a slope crossed straight the fit would
 read the counter-steer as a robot that does not turn. The route's own turn over the period, z =
-kappa(s) vbar dt, is the instrument: it is where the route turns, not where the ground pushes, so
-k = sum(z dtheta) / sum(z p), the straight stretches (z = 0) left out whatever is pushed there. A route
-turning less than MIN_TURN_RAD in all keeps k = 1.
+kappa(s) vbar dt (kappa across +-1 m), is the instrument: it is where the route turns, not where the
+ground pushes, so k = sum(z dtheta) / sum(z p) over the route's corners, the straight stretches left out
+whatever is pushed there. Where a corner lies on a slope the push changes with the heading through the
+corner and still biases that corner's k (by 1-6 % on the tests' route), and a slope between two
+corners can split one into pieces that read 0.1 and 1.1 (the main job's): the corners' own estimates
+must agree within CORNER_SPREAD, or k = 1 is kept. A route without a corner keeps k = 1 too, and k is
+at most 1: neither slip nor understeer turns a robot faster than its drive.
 
 A-priori uncertainty. The identified model's one-period residuals on the teach pass, g_k (eq. 5.17,
 body frame, from the teach pass's pose estimates and the commands), give its scale: the prior keeps
@@ -79,9 +83,14 @@ MIN_SAMPLES = 20
 DEFAULT_LEVEL = 1.0
 # a channel whose command hardly changed says nothing about its dynamics
 MIN_EXCITATION = {"v": 0.01, "w": 0.01}     # m/s, rad/s (std of the command)
-# the turn gain needs turns: at least this much turning of the route in the residuals (rad), and a
-# standard error below MAX_TURN_GAIN_STD; a gain outside the model's bounds is not believed
-MIN_TURN_RAD = math.pi / 2
+# the turn gain is fitted in the route's corners: where its heading changes by more than
+# CORNER_CURVATURE per metre across +-TURN_WINDOW_M, each corner turning CORNER_MIN_RAD at least; the
+# corners' own estimates may differ by CORNER_SPREAD of the gain at most, its standard error MAX_TURN_GAIN_STD
+TURN_WINDOW_M = 1.0
+CORNER_CURVATURE = 0.05     # 1/m
+CORNER_GAP = 10             # periods
+CORNER_MIN_RAD = math.radians(20.0)
+CORNER_SPREAD = 0.25
 MAX_TURN_GAIN_STD = 0.1
 
 
@@ -296,6 +305,7 @@ class TeachResiduals:
     decorrelated_var: np.ndarray    # (m, 3)
     turn_model: np.ndarray          # (m,) the heading change the model predicted over the period (rad)
     turn_route: np.ndarray          # (m,) the route's turn over the period at the model's speed (rad)
+    route_curvature: np.ndarray     # (m,) the route's heading change per metre there (1/m)
 
     def __len__(self) -> int:
         return len(self.g)
@@ -315,7 +325,7 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
     """The nominal model's one-period residuals on the teach pass from the teach estimates (made
     relative to the taught route), with the localizer's share of them."""
     builder = ExperienceBuilder(path, rec.dt, lag=lag)
-    G, U, step, decorrelated, turn_model, turn_route = [], [], [], [], [], []
+    G, U, step, decorrelated, turn_model, turn_route, curvature = [], [], [], [], [], [], []
     for tick in sorted(rec.estimates):
         loc = rec.estimates[tick]
         if loc.vertex >= len(path):
@@ -329,7 +339,8 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
             U.append(obs.a[5:7])
             vb, wb = lag.step(lag.state_before(tick - 1, builder.command_at), obs.a[5:7])[0]
             turn_model.append(wb * rec.dt)
-            turn_route.append(float(np.interp(obs.a[0], path.s, path.curvature)) * vb * rec.dt)
+            curvature.append(_route_turn(path, obs.a[0]))
+            turn_route.append(curvature[-1] * vb * rec.dt)
             before = rec.estimates.get(tick - 1)
             known = loc.cov_step_T_vertex_robot is not None and before is not None
             step.append(_body_variance(loc, loc.cov_step_T_vertex_robot) if known else np.zeros(3))
@@ -337,34 +348,60 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
                                 if known else np.zeros(3))
     as_array = lambda rows, n: np.array(rows, dtype=float).reshape(-1, n)   # noqa: E731
     return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3),
-                          np.array(turn_model, dtype=float), np.array(turn_route, dtype=float))
+                          np.array(turn_model, dtype=float), np.array(turn_route, dtype=float),
+                          np.array(curvature, dtype=float))
+
+
+def _route_turn(path: Path, s: float) -> float:
+    """The route's heading change per metre across +-TURN_WINDOW_M of s (1/m)."""
+    lo, hi = max(s - TURN_WINDOW_M, float(path.s[0])), min(s + TURN_WINDOW_M, float(path.s[-1]))
+    if hi <= lo:
+        return 0.0
+    th = np.unwrap(path.poses[:, 2])
+    return float(np.interp(hi, path.s, th) - np.interp(lo, path.s, th)) / (hi - lo)
 
 
 @dataclass(frozen=True)
 class TurnGain:
     gain: float
-    std: float          # standard error (0: not identified)
+    std: float                          # standard error (0: not identified)
+    corners: tuple[float, ...] = ()     # each corner's own estimate
     note: str = ""
 
 
+def _corners(res: TeachResiduals) -> list[np.ndarray]:
+    """The residuals' corners: runs where the route turns faster than CORNER_CURVATURE, joined across
+    gaps of up to CORNER_GAP periods, each turning CORNER_MIN_RAD at least."""
+    idx = np.flatnonzero(np.abs(res.route_curvature) > CORNER_CURVATURE)
+    runs = np.split(idx, np.flatnonzero(np.diff(idx) > CORNER_GAP) + 1) if len(idx) else []
+    return [r for r in runs if abs(float(np.sum(res.turn_route[r]))) >= CORNER_MIN_RAD]
+
+
 def fit_turn_gain(res: TeachResiduals) -> TurnGain:
-    """The robot's turn rate over the drive's from residuals of a gain-1 model (module docstring):
-    k = sum(z dtheta) / sum(z p), z the route's turn as the instrument, with its standard error."""
+    """The robot's turn rate over the drive's from residuals of a gain-1 model (module docstring): per
+    corner k_c = sum(z dtheta) / sum(z p), z the route's turn as the instrument; pooled over the corners
+    when they agree, at most 1 (neither slip nor understeer turns a robot faster than its drive)."""
+    corners = _corners(res)
+    if not corners:
+        return TurnGain(1.0, 0.0, (), f"turn gain: no corner of {math.degrees(CORNER_MIN_RAD):.0f} deg in the "
+                                      "teach pass to identify it on: 1 kept")
     z, p = res.turn_route, res.turn_model
-    turned = float(np.sum(np.abs(z)))
-    if turned < MIN_TURN_RAD:
-        return TurnGain(1.0, 0.0, f"turn gain: the route turns {math.degrees(turned):.0f} deg in all, too "
-                                  f"little to identify it: 1 kept")
     dtheta = p + res.g[:, 2]
-    zp = float(np.dot(z, p))
-    if not zp > 0.0:
-        return TurnGain(1.0, 0.0, "turn gain: the commands did not turn with the route: 1 kept")
-    k = float(np.dot(z, dtheta)) / zp
-    e = dtheta - k * p
-    std = math.sqrt(float(np.mean(e ** 2)) * float(np.dot(z, z))) / zp
-    if not (MIN_TURN_GAIN <= k <= MAX_TURN_GAIN and std <= MAX_TURN_GAIN_STD):
-        return TurnGain(1.0, 0.0, f"turn gain {k:.2f} +- {std:.2f} not believed: 1 kept")
-    return TurnGain(k, std)
+    zp = np.array([float(np.dot(z[c], p[c])) for c in corners])
+    zd = np.array([float(np.dot(z[c], dtheta[c])) for c in corners])
+    if not np.all(zp > 0.0):
+        return TurnGain(1.0, 0.0, (), "turn gain: the commands did not turn with the route: 1 kept")
+    each = tuple(float(x) for x in zd / zp)
+    k = float(zd.sum() / zp.sum())
+    every = np.concatenate(corners)
+    std = math.sqrt(float(np.mean((dtheta[every] - k * p[every]) ** 2)) * float(np.dot(z[every], z[every]))) / float(zp.sum())
+    listed = ", ".join(f"{x:.2f}" for x in each)
+    if max(each) - min(each) > CORNER_SPREAD * k:
+        return TurnGain(1.0, 0.0, each, f"turn gain: the corners disagree ({listed}): the ground pushes the "
+                                        "robot in some of them: 1 kept")
+    if not (MIN_TURN_GAIN <= k and std <= MAX_TURN_GAIN_STD):
+        return TurnGain(1.0, 0.0, each, f"turn gain {k:.2f} +- {std:.2f} not believed: 1 kept")
+    return TurnGain(min(k, 1.0), std, each)
 
 
 def _body_variance(loc: LocState, cov: tuple[float, ...] | None) -> np.ndarray:
