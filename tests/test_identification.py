@@ -140,6 +140,37 @@ def test_a_route_without_turns_keeps_the_turn_gain_at_one():
     assert fit.gain == 1.0 and fit.std == 0.0 and "no corner" in fit.note
 
 
+def _cornered(gains: list[float], rng) -> TeachResiduals:
+    """Residuals of a route with a 0.2 1/m, 46 deg corner per gain (the robot turning at that share of its
+    drive there) between straights, at 1 m/s, with the localizer's heading noise."""
+    z, p, kappa = [np.zeros(40)], [np.zeros(40)], [np.zeros(40)]
+    dtheta = [0.001 * rng.standard_normal(40)]
+    for k in gains:
+        zc = np.full(40, 0.2 * 1.0 * DT)
+        z += [zc, np.zeros(40)]
+        p += [zc / k, np.zeros(40)]
+        kappa += [np.full(40, 0.2), np.zeros(40)]
+        dtheta += [zc + 0.001 * rng.standard_normal(40), 0.001 * rng.standard_normal(40)]
+    z, p, kappa, dtheta = (np.concatenate(x) for x in (z, p, kappa, dtheta))
+    G = np.zeros((len(z), 3))
+    G[:, 2] = dtheta - p
+    U = np.column_stack([np.ones(len(z)), p / DT])
+    return TeachResiduals(G, U, np.zeros_like(G), np.zeros_like(G), p, z, kappa)
+
+
+def test_the_turn_gain_pools_the_corners_that_agree_and_keeps_one_where_they_do_not():
+    """Worked by hand: corners at 0.5, 0.52, 0.48 and one on a slip patch at 0.3 give the three's pooled
+    0.5 (the patch is the learned model's business); two corners at 0.9 and 0.5 say nothing about the
+    robot (one of them is pushed): 1, with the reason; a robot may not turn faster than its drive: 1."""
+    rng = np.random.default_rng(7)
+    fit = fit_turn_gain(_cornered([0.5, 0.52, 0.48, 0.3], rng))
+    assert len(fit.corners) == 4 and fit.corners[3] == pytest.approx(0.3, rel=0.05)
+    assert fit.gain == pytest.approx(1.0 / (1.0 / 0.5 + 1.0 / 0.52 + 1.0 / 0.48) * 3.0, rel=0.02) and fit.std < 0.01
+    split = fit_turn_gain(_cornered([0.9, 0.5], rng))
+    assert split.gain == 1.0 and "disagree" in split.note
+    assert fit_turn_gain(_cornered([1.2, 1.2], rng)).gain == 1.0
+
+
 def test_the_identified_lag_explains_the_teach_pass_better_than_none():
     """The 900 kg Grizzly's drives lag ~0.4 s: with the identified lag the nominal model's residuals on the
     teach pass are smaller than the plain unicycle's (eq. 5.26), along the route most (the start from
