@@ -12,14 +12,14 @@ the stable linear error dynamics of eq. 3.4 and
 
 where w_ref = v kappa cos e_H / (1 - kappa e_L) is the route's own turn rate. The thesis leaves w_ref
 to the feedforward term (ILC learns it); we include it by default (`curvature_feedforward`) because a
-tracker without it settles at e_L = -v^2 kappa / g1 on every arc.
+tracker without it settles at e_L = -v^2 kappa / g1 on every arc. Note the thesis writes e_L = y_d - y
+and e_H = theta_d - theta; the signs above are that law rederived in our convention.
 
 A robot that turns at a share k of its drive's turn rate (a skid-steer's ground slip, actuator.py
 turn_gain) is asked for w_ref / k, so it turns at the route's rate. The feedback is not divided by k: the
 gains then act at k times their value, and restoring them made a 47 %-turning Grizzly with a 0.3 s drive
 lag and a 0.16 s old estimate cycle +-60 deg at 1.2 m/s (docs/results.md, stop 44): eq. 3.4's poles
-placed without the lag and the delay leave the loop too little phase margin once its gain is whole. Note the thesis writes e_L = y_d - y
-and e_H = theta_d - theta; the signs above are that law rederived in our convention.
+placed without the lag and the delay leave the loop too little phase margin once its gain is whole.
 """
 from __future__ import annotations
 

@@ -71,7 +71,7 @@ from scipy.optimize import least_squares
 
 from common.messages import LocState, NominalModel
 from common.path import Path
-from services.controller.actuator import MAX_TURN_GAIN, MIN_TURN_GAIN, ActuatorLag
+from services.controller.actuator import MIN_TURN_GAIN, ActuatorLag
 from services.controller.experience import ExperienceBuilder
 from services.controller.uncertainty import PriorStd
 
@@ -327,7 +327,7 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
     """The nominal model's one-period residuals on the teach pass from the teach estimates (made
     relative to the taught route), with the localizer's share of them."""
     builder = ExperienceBuilder(path, rec.dt, lag=lag)
-    G, U, step, decorrelated, turn_model, turn_route, curvature = [], [], [], [], [], [], []
+    G, U, step, decorrelated, turn_model, speed, along = [], [], [], [], [], [], []
     for tick in sorted(rec.estimates):
         loc = rec.estimates[tick]
         if loc.vertex >= len(path):
@@ -341,26 +341,26 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
             U.append(obs.a[5:7])
             vb, wb = lag.step(lag.state_before(tick - 1, builder.command_at), obs.a[5:7])[0]
             turn_model.append(wb * rec.dt)
-            curvature.append(_route_turn(path, obs.a[0]))
-            turn_route.append(curvature[-1] * vb * rec.dt)
+            speed.append(vb)
+            along.append(obs.a[0])
             before = rec.estimates.get(tick - 1)
             known = loc.cov_step_T_vertex_robot is not None and before is not None
             step.append(_body_variance(loc, loc.cov_step_T_vertex_robot) if known else np.zeros(3))
             decorrelated.append(_body_variance(loc, loc.cov_T_vertex_robot) + _body_variance(before, before.cov_T_vertex_robot)
                                 if known else np.zeros(3))
     as_array = lambda rows, n: np.array(rows, dtype=float).reshape(-1, n)   # noqa: E731
+    curvature = _route_turn(path, np.array(along, dtype=float))
     return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3),
-                          np.array(turn_model, dtype=float), np.array(turn_route, dtype=float),
-                          np.array(curvature, dtype=float))
+                          np.array(turn_model, dtype=float), curvature * np.array(speed) * rec.dt, curvature)
 
 
-def _route_turn(path: Path, s: float) -> float:
-    """The route's heading change per metre across +-TURN_WINDOW_M of s (1/m)."""
-    lo, hi = max(s - TURN_WINDOW_M, float(path.s[0])), min(s + TURN_WINDOW_M, float(path.s[-1]))
-    if hi <= lo:
-        return 0.0
+def _route_turn(path: Path, s: np.ndarray) -> np.ndarray:
+    """The route's heading change per metre across +-TURN_WINDOW_M of each s (1/m)."""
+    lo, hi = np.maximum(s - TURN_WINDOW_M, path.s[0]), np.minimum(s + TURN_WINDOW_M, path.s[-1])
     th = np.unwrap(path.poses[:, 2])
-    return float(np.interp(hi, path.s, th) - np.interp(lo, path.s, th)) / (hi - lo)
+    span = hi - lo
+    return np.divide(np.interp(hi, path.s, th) - np.interp(lo, path.s, th), span,
+                     out=np.zeros_like(span), where=span > 0)
 
 
 @dataclass(frozen=True)
@@ -397,7 +397,7 @@ def fit_turn_gain(res: TeachResiduals) -> TurnGain:
     each = tuple(float(x) for x in zd / zp)
     median = float(np.median(each))
     agree = [i for i, x in enumerate(each) if abs(x - median) <= 0.5 * CORNER_SPREAD * median]
-    if len(agree) < max(1, (len(each) + 1) // 2) or (len(each) == 2 and len(agree) < 2):
+    if len(agree) < (len(each) + 1) // 2:      # of two, both (they lie either side of their median)
         listed = ", ".join(f"{x:.2f}" for x in each)
         return TurnGain(1.0, 0.0, each, f"turn gain: the corners disagree ({listed}): the ground pushes the "
                                         "robot in some of them: 1 kept")
