@@ -194,6 +194,9 @@ class TrialsSection:
     speed: float = 0.5
     speeds: list[float] | None = None
     learning: bool = True
+    # the teach pass's disturbance observations are the first experiences (GP laws): trial 1 then knows
+    # the slopes and slip the teach pass met; false: trial 1 starts from nothing (the thesis's first trial)
+    learn_from_teach: bool = True
     start_offset_m: float = 0.0       # lateral offset of the robot at the start of each repeat
     start_offset_deg: float = 0.0
     time_limit_factor: float = 3.0    # a trial is aborted after this many times its nominal time

@@ -48,7 +48,7 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         ilc=ctl.ilc,
         nmpc=replace(ctl.nmpc, horizon=ctl.horizon),
         store=StoreClientConfig(v_bin_mps=sc.store.v_bin_mps, c_vertex=sc.store.c_vertex,
-                                c_velocity=sc.store.c_velocity),
+                                c_velocity=sc.store.c_velocity, learn_from_teach=sc.trials.learn_from_teach),
         corridor=CorridorConfig(lateral_m=sc.constraints.lateral_m, heading_deg=sc.constraints.heading_deg,
                                 segments=[list(map(float, seg)) for seg in sc.constraints.segments]),
         data_dir=str(Path(data_dir) / "controller"))

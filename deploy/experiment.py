@@ -133,7 +133,10 @@ class Experiment:
         self.teach_sim_s = self.teach_wall_s = 0.0
         self.scheduled = False        # the trial being prepared follows the scheduler's schedule
         self.learns_feedforward = law_entry(sc.controller.algorithm).learns == "ilc"   # the controller's own
+        # the controller stores the teach pass's observations as the first experiences (GP laws)
+        self.learns_from_teach = law_entry(sc.controller.algorithm).learns == "gp" and sc.trials.learn_from_teach
         self.nominal_model: NominalModel | None = None
+        self.teach_learning: TrialLearning | None = None   # what was fitted on the teach pass, if anything
         self.decoder = Decoder(log)
         r = self.robot
         self._decls = [session.declare_subscriber(key, self._enqueue(kind, cls, key)) for kind, cls, key in (
@@ -294,7 +297,8 @@ class Experiment:
         return self.path
 
     def _identify(self) -> NominalModel:
-        """The controller identifies its nominal model on the teach pass just driven."""
+        """The controller identifies its nominal model on the teach pass just driven (and stores the pass's
+        experiences, if it learns from them: they are fitted on before trial 1)."""
         rep = self.control("controller", "stop", "teach", 0)
         try:
             model = query_one(self.session, keys.ctrl_model(self.robot, self.path_id), NominalModel, timeout_s=10.0)
@@ -303,6 +307,8 @@ class Experiment:
         if self.recorder:
             self.recorder.record(keys.ctrl_model(self.robot, self.path_id), encode(model))
         self.progress.line(f"model   {rep.detail}")
+        if self.learns_from_teach:
+            self.teach_learning = self._fit("the teach pass", "")
         return model
 
     def schedule(self, trial: int) -> SpeedSchedule | None:
@@ -476,16 +482,20 @@ class Experiment:
         note = rep.detail.removeprefix("idle; ").removeprefix("idle")
         if self.learns_feedforward:
             self.progress.line(f"learn   controller after trial {trial}: {note}")
+        return self._fit(f"trial {trial}", note, rep.detail)
+
+    def _fit(self, after: str, note: str, detail: str = "") -> "TrialLearning":
+        """Fit the GP hyperparameters on what the store keeps for the route now (thesis 5.2.3) and wait."""
         if "gp_store" not in self.alive:
-            self.progress.line(f"learn   no store reachable after trial {trial} ({rep.detail}): nothing fitted")
+            self.progress.line(f"learn   no store reachable after {after}{f' ({detail})' if detail else ''}: nothing fitted")
             return TrialLearning(None, 0, note)
-        self.progress.update(f"learn   {rep.detail}; fitting GP hyperparameters ...")
+        self.progress.update(f"learn   {detail + '; ' if detail else ''}fitting GP hyperparameters ...")
         t0 = time.monotonic()
         try:
             hyper = query_one(self.session, keys.store_fit(self.path_id), HyperMsg, timeout_s=1800.0)
         except LookupError as exc:
             self._check_children()
-            self.progress.line(f"learn   no fit after trial {trial}: {exc}")
+            self.progress.line(f"learn   no fit after {after}: {exc}")
             hyper = None
         ingested = self.ingested()
         if hyper is not None:
@@ -613,7 +623,9 @@ def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, h
 
 def _run_trials(sc: Scenario, exp: Experiment, out: FsPath, summary: dict, records: list, series: list,
                 disturbance: list) -> None:
-    model_train, model_hyper = [], None     # what the store knew before the trial
+    # what the store knew before the trial: after the teach pass, its experiences if they were learned from
+    teach = exp.teach_learning
+    model_train, model_hyper = (exp.retained(), teach.hyper) if teach is not None else ([], None)
     for trial in range(1, sc.trials.count + 1):
         rec = exp.repeat(trial, sc.trials.speed_of(trial))
         records.append(rec)
@@ -658,6 +670,10 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
         exp.wait_ready()
         exp.teach()
         summary["identified_model"] = to_dict(exp.nominal_model)
+        if exp.teach_learning is not None:   # the teach pass's experiences, fitted on before trial 1
+            hyper = exp.teach_learning.hyper
+            summary["teach_learning"] = {"experiences_stored": exp.teach_learning.ingested,
+                                         "hyper_version": hyper.version if hyper else None}
         _run_trials(sc, exp, out, summary, records, series, disturbance)
     finally:
         if exp is not None:

@@ -299,8 +299,9 @@ def _key_cell(key: str, value) -> str:
     return _fmt(value)
 
 
-def _model_section(model: dict) -> list[str]:
-    """The nominal model the controller identified on the teach pass (summary.json identified_model)."""
+def _model_section(model: dict, teach_learning: dict | None) -> list[str]:
+    """The nominal model the controller identified on the teach pass (summary.json identified_model), and
+    what the teach pass gave the learned model (teach_learning)."""
     rows = {"model (experiences carry this name)": model["model_tag"],
             "speed channel: lag, dead time (s), gain, acceleration limit (m/s^2)":
                 (model["tau_v_s"], model["dead_time_v_s"], model["gain_v"], model["rate_limit_v_mps2"]),
@@ -313,7 +314,9 @@ def _model_section(model: dict) -> list[str]:
                 (model.get("turn_gain", 1.0), model.get("turn_gain_std", 0.0)),
             "a-priori std per period, base (m, m, rad)": model["prior_std_base"],
             "... per m/s": model["prior_std_per_mps"], "... per rad/s": model["prior_std_per_radps"],
-            "scale of the default prior, from the teach residuals": model["prior_scale"]}
+            "scale of the default prior, from the teach residuals": model["prior_scale"],
+            "experiences from the teach pass, stored before trial 1 (GP fit version)":
+                (teach_learning["experiences_stored"], teach_learning["hyper_version"]) if teach_learning else "none"}
     rows.update({f"note {i + 1}": n for i, n in enumerate(model.get("notes") or [])})
     return ["<h2>Nominal model</h2><p class=cap>Identified by the controller on the teach pass: each drive "
             "channel's first-order lag, dead time, gain and acceleration limit against the wheel odometry (and an "
@@ -382,7 +385,7 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
                  "as the controller uses them); bottom: heading-rate residual RMSE per trial without and with "
                  "the learned model (trial 1 has no model yet).",
                  _plot_disturbance(disturbance or [], scenario.sim.period_s)),
-        *(_model_section(summary["identified_model"]) if summary.get("identified_model") else []),
+        *(_model_section(summary["identified_model"], summary.get("teach_learning")) if summary.get("identified_model") else []),
         "<h2>Trials</h2><p class=cap>Key figures per trial (truth against the taught route); highlighted "
         "trials violated a constraint or did not complete. Below, folded, every summary.json entry (angles in "
         "rad, times in s unless named otherwise).</p>",

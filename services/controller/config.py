@@ -33,6 +33,7 @@ class StoreClientConfig:
     lookahead_vertices: int = 20
     resend_after_s: float = 2.0
     ack_timeout_s: float = 10.0   # at the end of a trial, wait this long for the store's acknowledgements
+    learn_from_teach: bool = True  # store the teach pass's disturbance observations as trial 0's experiences
 
     def bins(self) -> BinPolicy:
         """The window geometry (c_bin is the store's business)."""

@@ -64,6 +64,7 @@ fits (docs/results.md, stop 39).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -72,7 +73,7 @@ from scipy.optimize import least_squares
 from common.messages import LocState, NominalModel
 from common.path import Path
 from services.controller.actuator import MIN_TURN_GAIN, ActuatorLag
-from services.controller.experience import ExperienceBuilder
+from services.controller.experience import ExperienceBuilder, Observation
 from services.controller.uncertainty import PriorStd
 
 MAX_DEAD_PERIODS = 5
@@ -323,11 +324,11 @@ class TeachResiduals:
         return vinf - (vinf - v1) * rho ** (j - 1)
 
 
-def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachResiduals:
-    """The nominal model's one-period residuals on the teach pass from the teach estimates (made
-    relative to the taught route), with the localizer's share of them."""
+def teach_observations(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> Iterator[tuple[LocState, Observation]]:
+    """The teach pass's disturbance observations under `lag` (experience.py, eq. 5.17), in capture order,
+    each with the estimate that completed it: the commands were the teach driver's, the estimates are
+    relative to the route they built."""
     builder = ExperienceBuilder(path, rec.dt, lag=lag)
-    G, U, step, decorrelated, turn_model, speed, along = [], [], [], [], [], [], []
     for tick in sorted(rec.estimates):
         loc = rec.estimates[tick]
         if loc.vertex >= len(path):
@@ -337,17 +338,26 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
                 builder.add_command(t, *rec.u[t])
         obs = builder.add_estimate(tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
         if obs is not None:
-            G.append(obs.g)
-            U.append(obs.a[5:7])
-            vb, wb = lag.step(lag.state_before(tick - 1, builder.command_at), obs.a[5:7])[0]
-            turn_model.append(wb * rec.dt)
-            speed.append(vb)
-            along.append(obs.a[0])
-            before = rec.estimates.get(tick - 1)
-            known = loc.cov_step_T_vertex_robot is not None and before is not None
-            step.append(_body_variance(loc, loc.cov_step_T_vertex_robot) if known else np.zeros(3))
-            decorrelated.append(_body_variance(loc, loc.cov_T_vertex_robot) + _body_variance(before, before.cov_T_vertex_robot)
-                                if known else np.zeros(3))
+            yield loc, obs
+
+
+def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachResiduals:
+    """The nominal model's one-period residuals on the teach pass from the teach estimates (made
+    relative to the taught route), with the localizer's share of them."""
+    G, U, step, decorrelated, turn_model, speed, along = [], [], [], [], [], [], []
+    for loc, obs in teach_observations(rec, path, lag):
+        tick = loc.capture_tick
+        G.append(obs.g)
+        U.append(obs.a[5:7])
+        vb, wb = lag.step(lag.state_before(tick - 1, rec.u.get), obs.a[5:7])[0]
+        turn_model.append(wb * rec.dt)
+        speed.append(vb)
+        along.append(obs.a[0])
+        before = rec.estimates.get(tick - 1)
+        known = loc.cov_step_T_vertex_robot is not None and before is not None
+        step.append(_body_variance(loc, loc.cov_step_T_vertex_robot) if known else np.zeros(3))
+        decorrelated.append(_body_variance(loc, loc.cov_T_vertex_robot) + _body_variance(before, before.cov_T_vertex_robot)
+                            if known else np.zeros(3))
     as_array = lambda rows, n: np.array(rows, dtype=float).reshape(-1, n)   # noqa: E731
     curvature = _route_turn(path, np.array(along, dtype=float))
     return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3),

@@ -18,8 +18,8 @@ import numpy as np
 from common import keys
 from common.bus import Node, query_one, reply
 from common.config import ConfigError
-from common.messages import (NAME_RE, BridgeStatus, Clock, ControllerStatus, CorridorUpdate, LocState, Odometry,
-                             RouteMsg, SpeedSchedule, VelocityCommand)
+from common.messages import (NAME_RE, BridgeStatus, Clock, ControllerStatus, CorridorUpdate, LocState, NominalModel,
+                             Odometry, RouteMsg, SpeedSchedule, VelocityCommand)
 from common.path import Path
 from common.service import Control, Service, service_main
 from common.outbox_journal import OutboxJournal
@@ -29,6 +29,7 @@ from services.controller.config import ControllerConfig, StoreClientConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
 from services.controller.ilc import ILCMemory
+from services.controller.identification import TeachRecorder, teach_observations
 from services.controller.ilc_lifted import ILCPlant
 from services.controller.laws import SteeringLaw
 from services.controller.local_model import LocalModels
@@ -184,20 +185,39 @@ class ControllerService(Service):
         return self.reply(ctl, True, "; ".join(["idle"] + notes))
 
     def _finish_teach(self, ctl: Control) -> None:
-        """Identify the nominal model on the teach pass just driven (identification.py), keep it for the route."""
+        """Identify the nominal model on the teach pass just driven (identification.py), keep it for the
+        route, and store the pass's disturbance observations as the route's first experiences."""
         req = ctl.request
-        if self.nominal.teach is None:
+        rec = self.nominal.teach
+        if rec is None:
             return self.reply(ctl, True, "idle (no teach pass recorded)")
         try:
-            model = self.nominal.finish_teach(self._load_route(req.path_id), req.stamp_s)
+            path = self._load_route(req.path_id)
+            model = self.nominal.finish_teach(path, req.stamp_s)
         except (LookupError, ValueError) as exc:
             return self.reply(ctl, False, f"cannot identify the nominal model on {req.path_id}: {exc}")
         self.node.publish(keys.ctrl_model(self.cfg.robot_name, model.path_id), model)
         tau = model.actuator_tau_s
+        notes = [*model.notes, self._learn_from_teach(rec, path, model)]
         return self.reply(ctl, True, f"nominal model {model.model_tag}: drive lags {tau[0]:.2f} / {tau[1]:.2f} s, "
                           f"turns at {model.turn_gain:.2f} of its drive, "
                           f"prior x{model.prior_scale[0]:.2f} / {model.prior_scale[1]:.2f} / {model.prior_scale[2]:.2f} "
-                          f"of the default" + "".join(f"; {n}" for n in model.notes))
+                          f"of the default" + "".join(f"; {n}" for n in notes if n))
+
+    def _learn_from_teach(self, rec: TeachRecorder, path: Path, model: NominalModel) -> str:
+        """The teach pass met the route's slopes and slip before any repeat: its observations, as residuals
+        of the model the repeats will use, become trial 0's experiences (GP laws only)."""
+        if self.outbox is None or not self.cfg.store.learn_from_teach or law_entry(self.cfg.algorithm).learns != "gp":
+            return ""
+        lag = self.cfg.nmpc.with_identified(model).lag(self.cfg.period_s)
+        self._use_model(lag.model_tag)
+        n = 0
+        for _, obs in teach_observations(rec, path, lag):
+            self.outbox.add(stamp_s=obs.stamp_s, trial=0, path_id=path.path_id, vertex=obs.vertex,
+                            v_cmd_mps=obs.v_cmd_mps, a=obs.a, g=obs.g)
+            n += 1
+        ok = self.outbox.wait_acked(self.cfg.store.ack_timeout_s)
+        return f"{n} teach experiences " + ("stored" if ok else "not yet acknowledged by any store")
 
     def _serve_model(self, q) -> None:
         """lbc/<robot>/ctrl/model/<path_id>: the route's identified nominal model."""
