@@ -13,7 +13,7 @@ from services.bridge.teach_driver import PurePursuitDriver
 from services.controller.actuator import ActuatorLag
 from services.controller.identification import (DEFAULT_LEVEL, TeachRecorder, TeachResiduals, fit_channel,
                                                 fit_turn_gain, identify, identify_drive, scaled_prior,
-                                                teach_residuals)
+                                                teach_observations, teach_residuals)
 from services.controller.uncertainty import PriorStd
 from services.localizer.pose_source import PoseSourceSettings
 
@@ -130,6 +130,40 @@ def test_the_teach_pass_identifies_how_much_of_its_drives_turn_the_robot_makes(p
     truth = float(np.average(shares, weights=weights))
     assert m.turn_gain == pytest.approx(truth, rel=0.07 if terrain else 0.02)
     assert 0.0 < m.turn_gain_std < 0.05 and m.model_tag.endswith(f"-gw{round(1000 * m.turn_gain)}")
+
+
+@pytest.mark.parametrize("preset", ["husky", "grizzly", "roc6", "mats"])
+def test_the_teach_passs_experiences_show_the_yaw_the_side_slope_adds(preset):
+    """What trial 1 learns from (teach_observations, stored as trial 0's experiences): under the model
+    identified on the same pass, the heading residuals over the side slope average the yaw rate the
+    simulator adds there (vehicle.py: slope_yaw_radps sin(slope) sin(downhill - heading), on the truth
+    pose) within 10 % (measured 1-7 %), and elsewhere stay within a tenth of it."""
+    robot = robot_from_preset(preset)
+    cl = ClosedLoop(ROUTE, [SLOPE], preset=robot, seed=1, teach_speed=0.8, loc=PoseSourceSettings())
+    drv = PurePursuitDriver(cl.ref, 0.8, cl.robot.max_curvature, cl.robot.w_max_radps)
+    cl.sim.reset(drv.start_pose, 0)
+    cl.source.start_teach(0)
+    rec, slope_yaw = TeachRecorder(DT), {}
+    s = cl.sim.sample()
+    while not (drv.done and abs(s.v_ground) < 1e-3):
+        rec.add_applied(s.tick, s.v_cmd, s.w_cmd)
+        rec.add_odometry(s.tick, s.odom_v, s.odom_w)
+        rec.add_estimate(cl.source.on_truth(truth_of(s, 0), "route"))
+        ground = cl.sim.terrain.effect(s.x, s.y)
+        moving = min(1.0, abs(cl.sim.vehicle.s.v_act) / 0.3)
+        slope_yaw[s.tick] = robot.slope_yaw_radps * ground.slope_sin * moving * math.sin(ground.downhill_rad - s.theta)
+        cl.sim.command(*drv.command((s.x, s.y, s.theta)))
+        s = cl.sim.step()
+    path = cl.source.finish_teach("route", loop=False, taught_by="test")
+    m = identify(rec, path, "r1", 0.0)
+    lag = ActuatorLag(*m.actuator_tau_s, DT, turn_gain=m.turn_gain)
+    pairs = [(loc.capture_tick, obs.g[2]) for loc, obs in teach_observations(rec, path, lag)]
+    seen = np.array([g for _, g in pairs])
+    added = np.array([slope_yaw.get(tick - 1, 0.0) * DT for tick, _ in pairs])   # over the period before
+    on = np.abs(added) > 0.3 * np.abs(added).max()
+    assert on.sum() > 100 and len(pairs) > 600
+    assert seen[on].mean() == pytest.approx(added[on].mean(), rel=0.1)
+    assert abs(seen[~on].mean()) < 0.1 * abs(added[on].mean())
 
 
 def test_a_route_without_turns_keeps_the_turn_gain_at_one():

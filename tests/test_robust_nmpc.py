@@ -526,7 +526,7 @@ def test_thesis_experiment_1_rc_lb_nmpc_keeps_the_corridor_and_speeds_up_where_c
     rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
     rc = run_trials(scenario_file(base), rc_dir)
     c_data = dict(base, name="c-lb-nmpc", controller=dict(base["controller"], algorithm="c-lb-nmpc"),
-                  trials={"count": 1, "speed": 1.0})
+                  trials=dict(base["trials"], count=1, speed=1.0))
     c = run_trials(scenario_file(c_data), c_dir)[0]
     assert len(rc) == 3 and all(t["completed"] and t["constraint_violations"] == 0 for t in rc), rc
     assert rc[-1]["travel_time_s"] <= 0.7 * rc[0]["travel_time_s"], [t["travel_time_s"] for t in rc]
@@ -551,9 +551,9 @@ def test_thesis_experiment_2_grizzly_in_ruts_rc_lb_nmpc_keeps_the_corridor_and_s
     trial 3 since stop 42's capped variance lengthscales; docs/results.md)."""
     base = example("rc-grizzly-ruts")
     rc_dir, c_dir = tmp_path / "rc", tmp_path / "c"
-    rc = run_trials(scenario_file(dict(base, trials={"count": 3, "speed": 2.0})), rc_dir)
+    rc = run_trials(scenario_file(dict(base, trials=dict(base["trials"], count=3, speed=2.0))), rc_dir)
     c_data = dict(base, name="c-lb-nmpc", controller=dict(base["controller"], algorithm="c-lb-nmpc"),
-                  trials={"count": 1, "speed": 2.0})
+                  trials=dict(base["trials"], count=1, speed=2.0))
     c = run_trials(scenario_file(c_data), c_dir)[0]
     assert len(rc) == 3 and all(t["completed"] and t["constraint_violations"] == 0 for t in rc), rc
     assert min(t["travel_time_s"] for t in rc[1:]) <= 0.95 * rc[0]["travel_time_s"], [t["travel_time_s"] for t in rc]
@@ -575,7 +575,7 @@ def test_thesis_min_max_experiment_lowers_the_first_trials_worst_lateral_error_b
         worst = {}
         for algo in ("lb-nmpc", "mm-lb-nmpc"):
             data = dict(base, name=f"{algo}-{seed}", seed=seed, controller=dict(base["controller"], algorithm=algo),
-                        trials={"count": 1, "speed": 0.5})
+                        trials=dict(base["trials"], count=1, speed=0.5))
             out = tmp_path / f"{algo}-{seed}"
             trial = run_trials(scenario_file(data), out)[0]
             assert trial["completed"], trial

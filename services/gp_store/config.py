@@ -11,6 +11,7 @@ from common.bins import BinPolicy
 # and tenths of m/s or rad/s of motion. Closed-loop data are narrow, and without these floors the
 # likelihood picks lengthscales of centimetres that a controller, querying off the data, exploits.
 DEFAULT_MIN_LENGTHSCALES = [0.5, 1.0, 1.0, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
+MOTION_INPUTS = 3    # a's inputs from here on are speeds and commands (experience.A_NAMES)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -22,10 +23,23 @@ class FitConfig:
     min_new: int = 50             # ... and at least this many are new since the last fit
     local_windows: bool = True    # likelihood of the local windows the controller uses (5.3.2)
     min_lengthscales: list[float] = field(default_factory=lambda: list(DEFAULT_MIN_LENGTHSCALES))
+    # the teach pass alone drove one command per place, so it cannot tell the place's disturbance from the
+    # commands' (fitted, its heading residual followed the counter-steer at 0.3 rad/s and the NMPC chattered
+    # against it): fitted on it alone, the motion inputs' lengthscales are at least this (m/s, rad/s)
+    teach_min_lengthscale_motion: float = 2.0
 
     def __post_init__(self):
         if len(self.min_lengthscales) != 9 or min(self.min_lengthscales) < 0:
             raise ValueError("min_lengthscales needs 9 values >= 0, one per input of a")
+        if self.teach_min_lengthscale_motion < 0:
+            raise ValueError("teach_min_lengthscale_motion must be >= 0")
+
+    def floors(self, teach_only: bool) -> list[float]:
+        """The lengthscale floors of a fit; `teach_only`: on the teach pass's experiences alone."""
+        if not teach_only:
+            return list(self.min_lengthscales)
+        motion = [max(x, self.teach_min_lengthscale_motion) for x in self.min_lengthscales[MOTION_INPUTS:]]
+        return list(self.min_lengthscales[:MOTION_INPUTS]) + motion
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -221,6 +221,13 @@ class ExperienceDB:
                          dtype=np.int64)
         return _stack([r[0] for r in rows], A_DIM), _stack([r[1] for r in rows], G_DIM), tiles
 
+    def trials_of(self, path_id: str, model: str) -> set[int]:
+        """The trials whose experiences of one nominal model are retained on a route (0: the teach pass)."""
+        with self._rlock:
+            rows = self._rdb.execute("SELECT DISTINCT trial FROM experiences WHERE path_id=? AND model=?",
+                                     (path_id, model)).fetchall()
+        return {int(r[0]) for r in rows}
+
     def experiences(self, path_id: str, after_id: int = 0, limit: int = 5000) -> list[tuple[int, str, Experience]]:
         """Stored experiences as (row id, source, experience), in insertion order (for export)."""
         with self._rlock:

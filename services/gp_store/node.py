@@ -274,7 +274,7 @@ class StoreService(Service):
         state.retained_at_fit = len(A)
         state.running = self._pool.submit(fit_route, path_id, A, G, tiles if f.local_windows else None,
                                           f.restarts, f.max_points, f.seed, prev.dims if prev else None,
-                                          list(f.min_lengthscales))
+                                          f.floors(teach_only=self.db.trials_of(path_id, model) == {0}))
         state.running.add_done_callback(lambda fut: self.inbox.put(("fit_done", (path_id, model, fut))))
 
     def _fit_done(self, path_id: str, model: str, fut: cf.Future) -> None:
