@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from bench.closed_loop import ClosedLoop, truth_of
+from common.bins import BinPolicy
 from common.robot import RobotParams, robot_from_preset
 from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
@@ -15,6 +16,8 @@ from services.controller.identification import (DEFAULT_LEVEL, TeachRecorder, Te
                                                 fit_turn_gain, identify, identify_drive, scaled_prior,
                                                 teach_observations, teach_residuals)
 from services.controller.uncertainty import PriorStd
+from services.gp_store.config import MOTION_INPUTS, FitConfig
+from services.gp_store.fitting import fit_route
 from services.localizer.pose_source import PoseSourceSettings
 
 DT = 0.1
@@ -164,6 +167,26 @@ def test_the_teach_passs_experiences_show_the_yaw_the_side_slope_adds(preset):
     assert on.sum() > 100 and len(pairs) > 600
     assert seen[on].mean() == pytest.approx(added[on].mean(), rel=0.1)
     assert abs(seen[~on].mean()) < 0.1 * abs(added[on].mean())
+
+
+def test_a_fit_on_the_teach_pass_alone_explains_its_disturbance_by_the_place_not_the_commands():
+    """The teach driver counter-steers on the slope, one command per place: fitted with the floors of
+    later fits, the heading residual's lengthscales in the turn rate and the commands fall to their
+    floors (0.3-0.36 rad/s), a dependence the NMPC then steers against; fitted as the store fits the
+    teach pass alone (FitConfig.floors), no motion lengthscale is below the teach floor and the slope
+    is explained along the route (a lengthscale of metres)."""
+    rec, path, _ = teach("roc6", 0.8, loc=PoseSourceSettings(noise_m=0.005))
+    m = identify(rec, path, "r1", 0.0)
+    obs = [o for _, o in teach_observations(rec, path, ActuatorLag(*m.actuator_tau_s, DT, turn_gain=m.turn_gain))]
+    A, G = np.array([o.a for o in obs]), np.array([o.g for o in obs])
+    bins = BinPolicy()
+    tiles = np.array([o.vertex // (2 * bins.c_vertex + 1) * 100_000 + bins.speed_bin(o.v_cmd_mps) // (2 * bins.c_velocity + 1)
+                      for o in obs])
+    cfg = FitConfig()
+    heading = {teach_only: fit_route("r", A, G, tiles, 3, 1000, 0, None, cfg.floors(teach_only)).dims[2].lengthscales
+               for teach_only in (False, True)}
+    assert min(heading[False][MOTION_INPUTS:]) < 0.5, heading[False]
+    assert min(heading[True][MOTION_INPUTS:]) >= cfg.teach_min_lengthscale_motion and heading[True][0] < 5.0, heading[True]
 
 
 def test_a_route_without_turns_keeps_the_turn_gain_at_one():
