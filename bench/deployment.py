@@ -177,7 +177,9 @@ def run_bench(args) -> dict:
             checks.append(_deploy_check(net, manifest, "learning"))      # ... and from the learning host
             if exp.wait(timeout=600) != 0:
                 raise RuntimeError(f"the experiment failed: {(base / 'experiment.log').read_text()[-3000:]}")
-            trials = json.loads((base / "out" / "summary.json").read_text())["trials"]
+            summary = json.loads((base / "out" / "summary.json").read_text())
+            trials = summary["trials"]
+            teach_produced = summary.get("teach_learning", {}).get("experiences_trial", 0)
             log.info("killing the learning host's router")
             kill_router(base, "learning")
             recover = _probe(net, manifest, "back")["back_after_s"]
@@ -194,7 +196,7 @@ def run_bench(args) -> dict:
             "deadline_misses": sum(t.get("deadline_misses", 0) for t in trials),
             "period_jitter_ms_p99": max(t.get("period_jitter_ms_p99", 0.0) for t in trials),
             "link_down_s": args.link_down_s,
-            "experiences_produced": sum(t["experiences_trial"] for t in trials),
+            "experiences_produced": teach_produced + sum(t["experiences_trial"] for t in trials),
             "experiences_acked": trials[-1]["experiences_total"],
             "router_restart_recover_s": max(recover, robot_recover),
             "router_restart_recover_s_learning": recover, "router_restart_recover_s_robot": robot_recover,

@@ -684,6 +684,8 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
             session.close()
         if launcher is not None:
             launcher.stop()
+        if exp is not None and "teach_learning" in summary:   # published by the end, acknowledged or not
+            summary["teach_learning"]["experiences_trial"] = len(exp.trial_experiences(0))
         if summary["trials"]:   # an empty summary would only make the folder look used
             write_json_atomic(out / "summary.json", summary)
     wall = time.monotonic() - t_start

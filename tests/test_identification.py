@@ -16,7 +16,7 @@ from services.controller.identification import (DEFAULT_LEVEL, TeachRecorder, Te
                                                 fit_turn_gain, identify, identify_drive, scaled_prior,
                                                 teach_observations, teach_residuals)
 from services.controller.uncertainty import PriorStd
-from services.gp_store.config import MOTION_INPUTS, FitConfig
+from services.gp_store.config import FitConfig
 from services.gp_store.fitting import fit_route
 from services.localizer.pose_source import PoseSourceSettings
 
@@ -173,8 +173,8 @@ def test_a_fit_on_the_teach_pass_alone_explains_its_disturbance_by_the_place_not
     """The teach driver counter-steers on the slope, one command per place: fitted with the floors of
     later fits, the heading residual's lengthscales in the turn rate and the commands fall to their
     floors (0.3-0.36 rad/s), a dependence the NMPC then steers against; fitted as the store fits the
-    teach pass alone (FitConfig.floors), no motion lengthscale is below the teach floor and the slope
-    is explained along the route (a lengthscale of metres)."""
+    teach pass alone (FitConfig.floors), only the place varies it and the slope is explained along the
+    route (a lengthscale of metres)."""
     rec, path, _ = teach("roc6", 0.8, loc=PoseSourceSettings(noise_m=0.005))
     m = identify(rec, path, "r1", 0.0)
     obs = [o for _, o in teach_observations(rec, path, ActuatorLag(*m.actuator_tau_s, DT, turn_gain=m.turn_gain))]
@@ -185,8 +185,8 @@ def test_a_fit_on_the_teach_pass_alone_explains_its_disturbance_by_the_place_not
     cfg = FitConfig()
     heading = {teach_only: fit_route("r", A, G, tiles, 3, 1000, 0, None, cfg.floors(teach_only)).dims[2].lengthscales
                for teach_only in (False, True)}
-    assert min(heading[False][MOTION_INPUTS:]) < 0.5, heading[False]
-    assert min(heading[True][MOTION_INPUTS:]) >= cfg.teach_min_lengthscale_motion and heading[True][0] < 5.0, heading[True]
+    assert min(heading[False][3:]) < 0.5, heading[False]
+    assert min(heading[True][1:]) >= cfg.teach_min_lengthscale_other and heading[True][0] < 5.0, heading[True]
 
 
 def test_a_route_without_turns_keeps_the_turn_gain_at_one():

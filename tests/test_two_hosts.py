@@ -189,13 +189,15 @@ def test_the_link_to_the_learning_host_drops_for_20_s_mid_trial(net, tmp_path):
             run.kill()
             net.link(True)
     assert rc == 0, err[-3000:]
-    trials = json.loads((tmp_path / "out" / "summary.json").read_text())["trials"]
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    trials = summary["trials"]
     assert [t["completed"] for t in trials] == [True, True], err[-3000:]
     second = trials[1]
     assert second["learning_off_since_s"] is None and second["learning_off_s"] == 0.0
     # every experience the controller produced was stored: the store's count of ingested experiences on
-    # the route equals what the runner saw published, trial by trial
-    assert second["experiences_total"] == sum(t["experiences_trial"] for t in trials) > 0
+    # the route equals what the runner saw published, the teach pass's and trial by trial
+    teach = summary["teach_learning"]["experiences_trial"]
+    assert teach > 0 and second["experiences_total"] == teach + sum(t["experiences_trial"] for t in trials)
     assert second["deadline_misses"] == 0 and second["period_jitter_ms_p99"] < 50.0
 
 
@@ -221,10 +223,15 @@ def test_the_robot_host_alone_teaches_and_repeats_and_learns_once_the_learning_h
                 learning.finish(30.0)
     assert rc == 0, err[-3000:]
     assert "not reachable (learning host down?)" in err and "no store reachable after trial 1" in err, err[-3000:]
-    trials = json.loads((tmp_path / "out" / "summary.json").read_text())["trials"]
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    trials = summary["trials"]
     assert [t["completed"] for t in trials] == [True, True, True], err[-3000:]
     assert "schedule_version" not in trials[0] and trials[0]["experiences_fit_used"] is None
-    # by the end the store has every experience of every trial, trial 1's queued ones included, once
+    # nothing stored or fitted after the teach pass, the store being down
+    assert summary["teach_learning"]["experiences_stored"] == 0 and summary["teach_learning"]["hyper_version"] is None
+    # by the end the store has every experience of every trial, the teach pass's and trial 1's queued
+    # ones included, once
     last = trials[-1]
-    assert last["experiences_total"] == sum(t["experiences_trial"] for t in trials) > 0, err[-3000:]
+    teach = summary["teach_learning"]["experiences_trial"]
+    assert teach > 0 and last["experiences_total"] == teach + sum(t["experiences_trial"] for t in trials), err[-3000:]
     assert last["experiences_fit_used"] > 0

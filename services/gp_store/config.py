@@ -11,7 +11,6 @@ from common.bins import BinPolicy
 # and tenths of m/s or rad/s of motion. Closed-loop data are narrow, and without these floors the
 # likelihood picks lengthscales of centimetres that a controller, querying off the data, exploits.
 DEFAULT_MIN_LENGTHSCALES = [0.5, 1.0, 1.0, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
-MOTION_INPUTS = 3    # a's inputs from here on are speeds and commands (experience.A_NAMES)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -23,23 +22,24 @@ class FitConfig:
     min_new: int = 50             # ... and at least this many are new since the last fit
     local_windows: bool = True    # likelihood of the local windows the controller uses (5.3.2)
     min_lengthscales: list[float] = field(default_factory=lambda: list(DEFAULT_MIN_LENGTHSCALES))
-    # the teach pass alone drove one command per place, so it cannot tell the place's disturbance from the
-    # commands' (fitted, its heading residual followed the counter-steer at 0.3 rad/s and the NMPC chattered
-    # against it): fitted on it alone, the motion inputs' lengthscales are at least this (m/s, rad/s)
-    teach_min_lengthscale_motion: float = 2.0
+    # one teach pass is a function of the place: its tracking errors, speeds and commands vary with s
+    # alone, so a fit on it cannot tell their effect from the place's (fitted freely, the heading residual
+    # followed the counter-steer, or a trend in w and e_head, and the NMPC steered against it). Fitted on
+    # the teach pass alone, every input but s has at least this lengthscale (its own units): the place
+    # explains the disturbance
+    teach_min_lengthscale_other: float = 100.0
 
     def __post_init__(self):
         if len(self.min_lengthscales) != 9 or min(self.min_lengthscales) < 0:
             raise ValueError("min_lengthscales needs 9 values >= 0, one per input of a")
-        if self.teach_min_lengthscale_motion < 0:
-            raise ValueError("teach_min_lengthscale_motion must be >= 0")
+        if self.teach_min_lengthscale_other < 0:
+            raise ValueError("teach_min_lengthscale_other must be >= 0")
 
     def floors(self, teach_only: bool) -> list[float]:
         """The lengthscale floors of a fit; `teach_only`: on the teach pass's experiences alone."""
         if not teach_only:
             return list(self.min_lengthscales)
-        motion = [max(x, self.teach_min_lengthscale_motion) for x in self.min_lengthscales[MOTION_INPUTS:]]
-        return list(self.min_lengthscales[:MOTION_INPUTS]) + motion
+        return self.min_lengthscales[:1] + [max(x, self.teach_min_lengthscale_other) for x in self.min_lengthscales[1:]]
 
 
 @dataclass(frozen=True, kw_only=True)
