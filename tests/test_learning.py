@@ -101,8 +101,9 @@ def test_without_learning_lb_nmpc_repeats_its_first_trial(tmp_path, scenario_fil
 @pytest.mark.slow
 def test_trial_1_knows_the_side_slope_the_teach_pass_crossed(tmp_path, scenario_file):
     """By default the teach pass's disturbance observations are stored as trial 0's experiences and fitted
-    on before trial 1 (a fit on them alone explains the disturbance by the place alone). A ROC6 repeating at its teach speed across a 12 deg side slope then tracks trial
-    1 with under half the lateral error it has from nothing (measured 0.041 m against 0.169 m)."""
+    on before trial 1 (a fit on them alone explains the disturbance by the place alone). A ROC6
+    repeating at its teach speed across a 12 deg side slope then tracks trial 1 with under half the
+    lateral error it has from nothing (measured 0.041 m against 0.169 m)."""
     base = {"name": "slope", "seed": 4, "robot": {"preset": "roc6"},
             "path": {"waypoints": [[0, 0], [14, 0], [22, 6]], "teach_speed_mps": 0.8},
             "terrain": [{"kind": "side_slope", "center": [7.0, 0.0], "radius_m": 5.0, "slope_deg": 12.0,
@@ -119,7 +120,8 @@ def test_trial_1_knows_the_side_slope_the_teach_pass_crossed(tmp_path, scenario_
     assert "teach_learning" not in out[False]
     teach_fit = next(h for h in hypers(tmp_path / "slope-True") if h.version == 1)
     floor = FitConfig().teach_min_lengthscale_other
-    assert all(min(d.lengthscales[1:]) >= floor for d in teach_fit.dims) and teach_fit.dims[2].lengthscales[0] < 5.0, teach_fit.dims
+    assert all(min(d.lengthscales[1:]) >= floor for d in teach_fit.dims), teach_fit.dims
+    assert teach_fit.dims[2].lengthscales[0] < 5.0, teach_fit.dims   # the slope's yaw, by the place
     assert taught["completed"] and fresh["completed"]
     assert taught["max_lateral_m"] < 0.5 * fresh["max_lateral_m"], (taught["max_lateral_m"], fresh["max_lateral_m"])
     assert taught["rms_lateral_m"] < 0.5 * fresh["rms_lateral_m"], (taught["rms_lateral_m"], fresh["rms_lateral_m"])
