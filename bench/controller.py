@@ -41,7 +41,7 @@ from services.controller.nmpc import build_problem
 from services.controller.registry import STEERING_LAWS, LawInputs
 from services.controller.robust_nmpc import CorridorStep, MinMaxStep
 from services.controller.settings import NMPCSettings
-from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
+from services.gp_store.config import FitConfig
 from common.bins import BinPolicy
 from services.gp_store.db import ExperienceDB
 from services.gp_store.fitting import fit_route
@@ -71,7 +71,7 @@ def build_memory(seed: int, workdir: str):
                                 for i, o in enumerate(r.observations)])
             seq += len(r.observations)
     A, G, tiles = db.all_of("route")
-    fit = fit_route("route", A, G, tiles, 3, 1000, seed, None, DEFAULT_MIN_LENGTHSCALES)
+    fit = fit_route("route", A, G, tiles, 3, 1000, seed, None, FitConfig().floors(teach_only=False))
     hyper = fit.message(version=1, stamp_s=0.0)
     # windows in memory, as the controller's prefetch cache holds them
     windows = {}

@@ -46,7 +46,7 @@ from bench.closed_loop import ClosedLoop
 from common.gp import SEHyper, fit_hyperparameters, heuristic_hyper, hyper_bounds, log_marginal_likelihood
 from common.scenario import TerrainPatch
 from services.controller.experience import G_NAMES
-from services.gp_store.config import DEFAULT_MIN_LENGTHSCALES
+from services.gp_store.config import FitConfig
 from common.bins import BinPolicy
 from services.localizer.pose_source import PoseSourceSettings
 
@@ -187,7 +187,7 @@ def _run(args, blas_threads: int | None) -> int:
     # floors (services/gp_store): a deliberately different objective, so its exact LML on E is lower
     store = fit_hyperparameters(X, Y, restarts=args.restarts, rng=np.random.default_rng([args.seed, 33]),
                                 max_points=args.max_points, groups=obs.tiles,
-                                min_lengthscales=np.asarray(DEFAULT_MIN_LENGTHSCALES))
+                                min_lengthscales=np.asarray(FitConfig().floors(teach_only=False)))
     store_lml = float(sum(log_marginal_likelihood(XE, YE[:, j], h) for j, h in enumerate(store.hypers)))
     _log(f"store's method (local windows, floors): {store.seconds:.2f} s, LML on E = {store_lml:.3f}")
 

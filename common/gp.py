@@ -31,7 +31,7 @@ import numpy as np
 from scipy.linalg import lapack, solve_triangular
 from scipy.optimize import minimize
 
-__all__ = ["SEHyper", "se_ard", "log_marginal_likelihood", "GaussianProcess", "FitResult",
+__all__ = ["SEHyper", "se_ard", "log_marginal_likelihood", "GaussianProcess", "FitResult", "subsample_rows",
            "fit_hyperparameters", "hyper_bounds", "heuristic_hyper"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -541,6 +541,17 @@ def _optimize(blocks: list[tuple[np.ndarray, np.ndarray]], theta0: np.ndarray,
     return theta, f
 
 
+def subsample_rows(n: int, labels: np.ndarray | None, max_points: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of at most `max_points` of n rows drawn with `rng`: uniformly, or with `labels` whole groups
+    in random order until max_points rows (at least one group)."""
+    if labels is None:
+        return np.sort(rng.choice(n, size=int(max_points), replace=False))
+    order = rng.permutation(np.unique(labels))
+    sizes = np.array([np.count_nonzero(labels == g) for g in order])
+    chosen = order[: max(1, int(np.searchsorted(np.cumsum(sizes), max_points, side="right")))]
+    return np.flatnonzero(np.isin(labels, chosen))
+
+
 def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, max_points: int = 1000,
                         init: list[SEHyper] | None = None, groups: np.ndarray | None = None,
                         min_lengthscales: np.ndarray | None = None) -> FitResult:
@@ -553,11 +564,11 @@ def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, ma
     subsample of `max_points` rows drawn with `rng`. Rows with a non-finite entry are dropped. Never
     raises on ill-conditioned data: a candidate whose kernel cannot be factorized scores -inf.
 
-    `min_lengthscales` (p,) raises the lower bounds of the lengthscales to a physical floor: how fast
-    the disturbance can possibly change with each input. Closed-loop data are narrow (a robot that
-    tracks well stays within centimetres of its route), and the likelihood alone then happily fits
-    lengthscales far below any physical scale, which a controller that queries the model off its data
-    exploits.
+    `min_lengthscales` (p,), or (d, p) with one row per output dimension, raises the lower bounds of the
+    lengthscales to a physical floor: how fast the disturbance can possibly change with each input.
+    Closed-loop data are narrow (a robot that tracks well stays within centimetres of its route), and the
+    likelihood alone then happily fits lengthscales far below any physical scale, which a controller that
+    queries the model off its data exploits.
 
     `groups` (one label per row) fits the model as it will be used when predictions come from local
     windows of the data (thesis 5.3.2): the objective is the sum of the LMLs of the groups, each an
@@ -577,13 +588,7 @@ def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, ma
         raise ValueError(f"init has {len(init)} hyperparameter sets for {d} output dimensions")
     labels = None if groups is None else np.asarray(groups)[keep]
     if max_points > 0 and n > max_points:
-        if labels is None:
-            idx = np.sort(rng.choice(n, size=int(max_points), replace=False))
-        else:  # whole groups, in random order, until max_points rows
-            order = rng.permutation(np.unique(labels))
-            sizes = np.array([np.count_nonzero(labels == g) for g in order])
-            chosen = order[: max(1, int(np.searchsorted(np.cumsum(sizes), max_points, side="right")))]
-            idx = np.flatnonzero(np.isin(labels, chosen))
+        idx = subsample_rows(n, labels, max_points, rng)
         X, Y = X[idx], Y[idx]
         labels = None if labels is None else labels[idx]
         n = len(X)
@@ -595,7 +600,8 @@ def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, ma
         y = np.ascontiguousarray(Y[:, j])
         bounds = hyper_bounds(Xc, y)
         if min_lengthscales is not None:
-            floor = np.log(np.maximum(np.asarray(min_lengthscales, dtype=float), 1e-12))
+            floors = np.asarray(min_lengthscales, dtype=float)
+            floor = np.log(np.maximum(floors[j] if floors.ndim == 2 else floors, 1e-12))
             bounds[:p, 0] = np.maximum(bounds[:p, 0], floor)
             bounds[:p, 1] = np.maximum(bounds[:p, 1], bounds[:p, 0])
         first = init[j] if init is not None else heuristic_hyper(Xc, y)

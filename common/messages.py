@@ -462,6 +462,7 @@ class HyperDim(Message):
 @dataclass(frozen=True, kw_only=True)
 class HyperMsg(Message):
     """Versioned GP hyperparameters of one route, one entry per output dimension of g."""
+    SCHEMA_VERSION = 2    # v2: note
     stamp_s: float
     path_id: str
     version: int
@@ -473,6 +474,8 @@ class HyperMsg(Message):
     # the nominal model of the experiences they were fitted on (Experience.model): a controller uses
     # only its own model's
     model: str = ""
+    # what the store changed after the likelihood's fit, and why (services/gp_store/authority.py); "": nothing
+    note: str = ""
 
     def __post_init__(self):
         _check_vector("dims", self.dims, G_DIM)

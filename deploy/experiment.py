@@ -527,7 +527,7 @@ def fit_line(hyper: HyperMsg, ingested: int, wall_s: float) -> str:
     model = f" of model {hyper.model}" if hyper.model else ""
     return (f"learn   hyperparameters v{hyper.version} fitted on {hyper.n_used} of the {hyper.n_total} experiences "
             f"retained{model}; {ingested} ingested on this route in all (experiences_total); "
-            f"fit {hyper.fit_s:.1f} s ({wall_s:.1f} s wall)")
+            f"fit {hyper.fit_s:.1f} s ({wall_s:.1f} s wall)" + (f"; {hyper.note}" if hyper.note else ""))
 
 
 def trial_line(count: int, rec: TrialRecord, m: dict) -> str:
@@ -614,6 +614,7 @@ def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, h
     m.update({"experiences_trial": len(d.observed),
               "experiences_fit_retained": hyper.n_total if hyper else None,
               "experiences_fit_used": hyper.n_used if hyper else None,
+              "fit_note": hyper.note if hyper else None,
               "heading_rate_residual_rmse_nominal_radps": float(nominal[2] / sc.sim.period_s),
               "heading_rate_residual_rmse_learned_radps": float(learned[2] / sc.sim.period_s),
               "lateral_residual_rmse_nominal_mps": float(nominal[1] / sc.sim.period_s),

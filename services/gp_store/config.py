@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from common.bins import BinPolicy
+from services.gp_store.authority import HEADING, W_ACT, W_CMD_PREV
 
 
 # How fast a disturbance can physically change with each input of a (experience.py A_NAMES): terrain
@@ -11,6 +12,7 @@ from common.bins import BinPolicy
 # and tenths of m/s or rad/s of motion. Closed-loop data are narrow, and without these floors the
 # likelihood picks lengthscales of centimetres that a controller, querying off the data, exploits.
 DEFAULT_MIN_LENGTHSCALES = [0.5, 1.0, 1.0, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
+TURN_HISTORY = (W_ACT, W_CMD_PREV)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -28,18 +30,38 @@ class FitConfig:
     # the teach pass alone, every input but s has at least this lengthscale (its own units): the place
     # explains the disturbance
     teach_min_lengthscale_other: float = 100.0
+    # a repeat's heading model must leave the controller at least this share of its nominal turn authority
+    # (services/gp_store/authority.py); one that does not is refitted with the turn-rate inputs switched off
+    # (lengthscales >= teach_min_lengthscale_other). 0: no check
+    min_turn_authority: float = 0.5
+    # the thesis's a includes the measured turn rate and the previous command (5.3.1) for dynamics the
+    # unicycle lacks; the identified drive lag now models those, and in closed loop the two let a fit explain
+    # a place's yaw as "the last period's turn rate persists, whatever is commanded": one period predicted
+    # well, no yaw foreseen ahead, and a controller that alternates its steering at the limit because the
+    # model credits that with more turn (a MATS in a rut corner left a 0.19 m corridor by 1.8 m). False: the
+    # heading residual's lengthscales of w_act and w_cmd_prev are at least teach_min_lengthscale_other
+    heading_from_turn_history: bool = False
 
     def __post_init__(self):
         if len(self.min_lengthscales) != 9 or min(self.min_lengthscales) < 0:
             raise ValueError("min_lengthscales needs 9 values >= 0, one per input of a")
         if self.teach_min_lengthscale_other < 0:
             raise ValueError("teach_min_lengthscale_other must be >= 0")
+        if not 0 <= self.min_turn_authority < 1:
+            raise ValueError("min_turn_authority must be in [0, 1)")
 
-    def floors(self, teach_only: bool) -> list[float]:
-        """The lengthscale floors of a fit; `teach_only`: on the teach pass's experiences alone."""
-        if not teach_only:
-            return list(self.min_lengthscales)
-        return self.min_lengthscales[:1] + [max(x, self.teach_min_lengthscale_other) for x in self.min_lengthscales[1:]]
+    def floors(self, teach_only: bool) -> list[list[float]]:
+        """The lengthscale floors of a fit, one row per output dimension of g (G_NAMES); `teach_only`: on the
+        teach pass's experiences alone."""
+        off = self.teach_min_lengthscale_other
+        if teach_only:
+            row = self.min_lengthscales[:1] + [max(x, off) for x in self.min_lengthscales[1:]]
+            return [list(row) for _ in range(3)]
+        rows = [list(self.min_lengthscales) for _ in range(3)]
+        if not self.heading_from_turn_history:
+            for i in TURN_HISTORY:
+                rows[HEADING][i] = max(rows[HEADING][i], off)
+        return rows
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -31,6 +31,7 @@ from common.messages import (ExperienceAck, ExperienceBatch, ExperienceWindow, R
                              check_name)
 from common.service import Control, Service, service_main
 from common.typecheck import to_dict
+from services.gp_store.authority import AuthorityRule
 from services.gp_store.config import StoreConfig
 from services.gp_store.db import ExperienceDB
 from services.gp_store.fitting import FitResult, fit_route
@@ -272,9 +273,12 @@ class StoreService(Service):
         self.log.info("fitting GP hyperparameters for %s on %d experiences (nominal model %s)", path_id, len(A),
                       model or "untagged")
         state.retained_at_fit = len(A)
+        teach_only = self.db.trials_of(path_id, model) == {0}
+        rule = None if teach_only else AuthorityRule.for_model(model, f.min_turn_authority,
+                                                               f.teach_min_lengthscale_other)
         state.running = self._pool.submit(fit_route, path_id, A, G, tiles if f.local_windows else None,
                                           f.restarts, f.max_points, f.seed, prev.dims if prev else None,
-                                          f.floors(teach_only=self.db.trials_of(path_id, model) == {0}))
+                                          f.floors(teach_only), rule)
         state.running.add_done_callback(lambda fut: self.inbox.put(("fit_done", (path_id, model, fut))))
 
     def _fit_done(self, path_id: str, model: str, fut: cf.Future) -> None:
@@ -287,6 +291,8 @@ class StoreService(Service):
             self.node.publish(keys.store_hyper(path_id), msg)
             self.log.info("%s: hyperparameters v%d from %d/%d experiences in %.1f s (LML %s)", path_id, msg.version,
                           msg.n_used, msg.n_total, msg.fit_s, [round(x, 1) for x in msg.lml])
+            if msg.note:
+                self.log.warning("%s: hyperparameters v%d: %s", path_id, msg.version, msg.note)
             for q in waiting:
                 q.reply(keys.store_fit(path_id), encode(msg))
         except Exception as exc:
