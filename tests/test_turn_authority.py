@@ -34,7 +34,7 @@ def _interior(A: np.ndarray) -> np.ndarray:
     return np.abs(A[:, W_CMD]) < 0.3
 
 
-@pytest.mark.parametrize("slope", [-0.8, -0.3, 0.2])
+@pytest.mark.parametrize("slope", [-0.95, -0.8, -0.3, 0.2])
 def test_the_authority_kept_is_one_plus_the_slope_of_a_linear_command_dependence(slope):
     A, y = _linear_in_command(slope)
     # the command's lengthscale long against its range: the posterior mean is the line, other inputs flat
@@ -42,7 +42,7 @@ def test_the_authority_kept_is_one_plus_the_slope_of_a_linear_command_dependence
     check = turn_authority(A, y, None, hyper, AuthorityRule(period_s=DT))
     inner = check.shares[_interior(A)]
     assert np.allclose(inner, 1.0 + slope, atol=0.03), (inner.min(), inner.max())
-    assert check.passed == (1.0 + slope >= 0.5)
+    assert check.passed == (1.0 + slope >= check.min_share)
 
 
 def test_a_model_where_the_last_turn_rate_persists_whatever_is_commanded_has_no_steady_turn():
@@ -66,14 +66,14 @@ def test_the_rule_reads_the_period_and_turn_gain_from_the_nominal_models_tag():
 
 
 def test_a_fit_that_learned_the_commands_is_refitted_with_the_turn_rate_inputs_off():
-    A, y = _linear_in_command(-0.9, n=400, seed=2)
+    A, y = _linear_in_command(-0.97, n=400, seed=2)
     G = np.column_stack([np.zeros(len(y)), np.zeros(len(y)), y]) + np.random.default_rng(3).normal(0, 1e-4, (len(y), 3))
     floors = [0.5, 1.0, 1.0, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
     free = fit_route("r", A, G, None, 1, 1000, 0, None, floors)
     h = free.dims[2]
     learned = turn_authority(A, G[:, 2], None, SEHyper(np.asarray(h.lengthscales), h.signal_std, h.noise_std),
                              AuthorityRule(period_s=DT))
-    assert free.note == "" and np.allclose(learned.shares[_interior(A)], 0.1, atol=0.05)
+    assert free.note == "" and np.allclose(learned.shares[_interior(A)], 0.03, atol=0.03)
     checked = fit_route("r", A, G, None, 1, 1000, 0, None, floors, AuthorityRule(period_s=DT))
     assert "switched off" in checked.note and "steering" in checked.note
     assert min(checked.dims[2].lengthscales[i] for i in TURN_INPUTS) >= 100.0
@@ -82,7 +82,7 @@ def test_a_fit_that_learned_the_commands_is_refitted_with_the_turn_rate_inputs_o
 
 
 def test_a_fit_that_keeps_the_steering_is_left_alone():
-    A, y = _linear_in_command(-0.2, n=400, seed=4)
+    A, y = _linear_in_command(-0.6, n=400, seed=4)
     G = np.column_stack([np.zeros(len(y)), np.zeros(len(y)), y]) + np.random.default_rng(5).normal(0, 1e-4, (len(y), 3))
     floors = [0.5, 1.0, 1.0, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
     checked = fit_route("r", A, G, None, 1, 1000, 0, None, floors, AuthorityRule(period_s=DT))

@@ -14,8 +14,9 @@ a command held until the turn rate settles, r = k w + (G_wcmd + G_wprev) w + G_w
 
     (k + G_wcmd + G_wprev) / (k (1 - G_wact))        (G_wact < 1; otherwise it has no steady turn),
 
-whichever is smaller. Terrain scales the turn (slip lowers it, never reverses it); a model that keeps less
-than `min_share` at more than MAX_FRACTION_BELOW of its points has learned the controller's own commands,
+whichever is smaller. Terrain scales the turn (slip lowers it, a skid-steer at speed keeps a fraction of
+it) but does not cancel or reverse it; a model that keeps less than `min_share` (default 0.1) at more than
+MAX_FRACTION_BELOW of its points has learned the controller's own commands,
 and the store refits its heading dimension with the turn-rate inputs switched off (lengthscales >= the
 fit's off-lengthscale): the place and the speed explain the yaw. Gradients come from each local window's
 GP, as the controller predicts (thesis 5.3.2). By default the store fits the heading without w_act and
@@ -44,7 +45,7 @@ class AuthorityRule:
     """What the check needs: the nominal model's period and turn gain, and the bounds."""
     period_s: float
     turn_gain: float = 1.0
-    min_share: float = 0.5
+    min_share: float = 0.1
     off_lengthscale: float = 100.0     # a turn-rate input switched off in the refit
 
     @classmethod
