@@ -335,6 +335,13 @@ def _learning_off_notes(trials: list[dict]) -> list[str]:
     return [f"<p class=warn>{html.escape(n)}</p>" for n in notes]
 
 
+def _fit_notes(trials: list[dict]) -> list[str]:
+    """A warning where the store refitted the model a trial used (services/gp_store/authority.py)."""
+    notes = [f"The model of trial {t['trial']} was refitted by the store: {t['fit_note']}."
+             for t in trials if t.get("fit_note")]
+    return [f"<p class=warn>{html.escape(n)}</p>" for n in notes]
+
+
 def _section(title: str, caption: str, png: str) -> str:
     return (f"<h2>{html.escape(title)}</h2><p class=cap>{html.escape(caption)}</p>"
             f"<img alt='{html.escape(title)}' src='data:image/png;base64,{png}'>")
@@ -362,6 +369,7 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
         f"<style>{_CSS}</style></head><body><h1>{html.escape(name)}</h1>",
         _kv_table(header),
         *_learning_off_notes(trials),
+        *_fit_notes(trials),
         _section("Map", "Top view, equal aspect, metres: taught route, waypoints, terrain patches (coloured by "
                  "kind) and the driven truth trajectory of the first and last trial.",
                  _plot_map(scenario, path, series)),
