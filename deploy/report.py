@@ -336,8 +336,8 @@ def _learning_off_notes(trials: list[dict]) -> list[str]:
 
 
 def _fit_notes(trials: list[dict]) -> list[str]:
-    """A warning where the store refitted the model a trial used (services/gp_store/authority.py)."""
-    notes = [f"The model of trial {t['trial']} was refitted by the store: {t['fit_note']}."
+    """A warning where the store refitted its fit after a trial (services/gp_store/authority.py)."""
+    notes = [f"The model fitted after trial {t['trial']} was refitted by the store: {t['fit_note']}."
              for t in trials if t.get("fit_note")]
     return [f"<p class=warn>{html.escape(n)}</p>" for n in notes]
 

@@ -102,7 +102,7 @@ def test_report_contents(tmp_path):
                   [disturbance(1, learned=False), disturbance(2)], MODEL)
     assert "Learned disturbance" in page
     warnings = re.findall(r"<p class=warn>(.*?)</p>", page)
-    assert warnings == ["The model of trial 2 was refitted by the store: the heading model kept &lt; 10% of the "
+    assert warnings == ["The model fitted after trial 2 was refitted by the store: the heading model kept &lt; 10% of the "
                         "steering."]
     model = page[page.index("<h2>Nominal model</h2>"):page.index("<h2>Trials</h2>")]
     assert "unicycle-dt100ms-tauv370ms-tauw393ms" in model and "0.37, 0, 0.999, 0.82" in model

@@ -75,7 +75,7 @@ class AuthorityCheck:
 
     def describe(self) -> str:
         p5 = float(np.percentile(self.shares, 5)) if len(self.shares) else 1.0
-        return (f"the heading model kept < {self.min_share:.0%} of the steering at {self.fraction_below:.0%} of "
+        return (f"the heading model kept < {self.min_share:.0%} of the steering at {self.fraction_below:.1%} of "
                 f"{len(self.shares)} points (5th percentile {max(p5, -9.99):.2f})")
 
 
