@@ -3,9 +3,9 @@ generalize, on N random scenarios run through the real services.
 
 Scenario i is drawn by `bench.scenario_draw.draw(default_rng([S, i]), i)` (the distribution is
 documented there): algorithm families in turn, lb-nmpc (fixed speed, 5 trials), lb-nmpc-scheduled
-(8 trials), rc-lb-nmpc (high requested speed, 5 trials), ilc (6 trials). Every lb-nmpc scenario also
-runs a second time with `[trials] learning = false` (same seed, same world): the learning-off
-comparison; every lb-nmpc-scheduled one a second time with `[scheduler] guard = false`: the thesis's
+(8 trials), rc-lb-nmpc (high requested speed, 5 trials), ilc (6 trials). Every lb-nmpc and ilc scenario
+also runs a second time with `[trials] learning = false` (same seed, same world; ILC then keeps its
+feedforward at zero): the learning-off comparison; every lb-nmpc-scheduled one a second time with `[scheduler] guard = false`: the thesis's
 rule (eq. 4.2-4.5) without the guard against overshooting increases. Each run is its own `lbc experiment run SCENARIO --out RUN` child process (its own router
 on a free port and its own services), `--jobs` of them at a time; a finished run prints one line on
 stderr. `--out DIR` keeps, per run, `DIR/<name>.toml` (replay: `lbc experiment run DIR/<name>.toml
@@ -31,7 +31,10 @@ Figures per family, from each run's summary.json (trial k of a run: its k-th ent
 - `self_stops`: trials that ended because the controller stopped itself, with its reason;
   `other_stops`: trials that did not complete for another reason (time limit, ...);
   `failed_scenarios`: runs that exited with an error, with its last console line;
-- `scenarios`: the same per scenario; lb-nmpc adds `learning_off`, these figures for its
+- `last_trial_vs_learning_off_median` (lb-nmpc, ilc): median over scenarios of 1 - max_lateral_m of
+  the last trial / that of the learning-off run's last trial: what learning did where the route itself
+  changes from trial to trial (ruts deepen every pass), which the gain over trial 1 mixes in;
+- `scenarios`: the same per scenario; lb-nmpc and ilc add `learning_off`, these figures for their
   learning-off runs, and lb-nmpc-scheduled `guard_off`, for its runs under the plain thesis rule.
 `--family NAME` (repeatable) runs only the draws of those families, scenario i being the same draw as
 without it; the JSON lists them under `families` (null: all) and the others' figures are empty.
@@ -76,7 +79,7 @@ from common.typecheck import to_dict
 CHILD_STOP_S = 60.0       # a run given SIGTERM stops its services and exits well within this
 SELF_STOP = "controller stopped: "   # how deploy/experiment.py words a trial the controller ended
 # the comparison runs per family, each under its own key in the family's figures (module docstring)
-TWINS = {"lb-nmpc": ("learning_off",), "lb-nmpc-scheduled": ("guard_off",)}
+TWINS = {"lb-nmpc": ("learning_off",), "lb-nmpc-scheduled": ("guard_off",), "ilc": ("learning_off",)}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -157,6 +160,7 @@ class ScenarioResult:
     error: str
     travel_over_ideal: float | None = None   # travel time of the last trial / route length at its setpoint
     outside_3sigma_max: float | None = None  # the largest outside_3sigma_fraction of its trials
+    last_trial_vs_learning_off: float | None = None   # 1 - max lateral of the last trial / the learning-off run's
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -178,6 +182,7 @@ class FamilyStats:
     other_stops: list[Stop] = field(default_factory=list)
     failed_scenarios: list[Failure] = field(default_factory=list)
     scenarios: list[ScenarioResult] = field(default_factory=list)
+    last_trial_vs_learning_off_median: float | None = None
 
 
 # --- scenarios and runs ---------------------------------------------------------------------------
@@ -305,10 +310,17 @@ def _gain(first: float, last: float) -> float | None:
     return round(1.0 - last / first, 4) if first > 0 else None
 
 
-def scenario_result(o: RunOutcome) -> ScenarioResult:
+def _last_completed(o: RunOutcome) -> TrialResult | None:
+    last = next((t for t in o.trials if t.trial == o.job.planned_trials), None)
+    return last if last is not None and last.completed else None
+
+
+def scenario_result(o: RunOutcome, learning_off: RunOutcome | None = None) -> ScenarioResult:
+    """One scenario's figures; `learning_off`: its learning-off twin, if it ran."""
     by_trial = {t.trial: t for t in o.trials}
     first, last = by_trial.get(1), by_trial.get(o.job.planned_trials)
     both = first is not None and last is not None and first.completed and last.completed
+    off_last = _last_completed(learning_off) if learning_off is not None else None
     return ScenarioResult(
         scenario=o.job.name, preset=o.job.preset, trials=len(o.trials),
         completed=sum(t.completed for t in o.trials),
@@ -319,7 +331,9 @@ def scenario_result(o: RunOutcome) -> ScenarioResult:
         error=o.error,
         travel_over_ideal=round(last.travel_time_s / last.ideal_travel_s, 4)
         if both and last.ideal_travel_s else None,
-        outside_3sigma_max=_max([t.outside_3sigma for t in o.trials]))
+        outside_3sigma_max=_max([t.outside_3sigma for t in o.trials]),
+        last_trial_vs_learning_off=_gain(off_last.max_lateral_m, last.max_lateral_m)
+        if off_last is not None and last is not None and last.completed else None)
 
 
 def _median(values: list[float | None]) -> float | None:
@@ -338,8 +352,9 @@ def _stops(outcomes: Sequence[RunOutcome], own: bool) -> list[Stop]:
             if not t.completed and t.end_reason.startswith(SELF_STOP) == own]
 
 
-def family_stats(outcomes: Sequence[RunOutcome]) -> FamilyStats:
-    per = [scenario_result(o) for o in outcomes]
+def family_stats(outcomes: Sequence[RunOutcome], learning_off: dict[int, RunOutcome] | None = None) -> FamilyStats:
+    """A family's figures; `learning_off`: its learning-off twins by scenario index."""
+    per = [scenario_result(o, (learning_off or {}).get(o.job.index)) for o in outcomes]
     planned = sum(o.job.planned_trials for o in outcomes)
     excursions = [s.worst_excursion_ratio for s in per if s.worst_excursion_ratio is not None]
     outside = [t.outside_3sigma for o in outcomes for t in o.trials]
@@ -357,7 +372,8 @@ def family_stats(outcomes: Sequence[RunOutcome]) -> FamilyStats:
         outside_3sigma_over_1pct=sum(v > 0.01 for v in outside if v is not None),
         other_stops=_stops(outcomes, own=False),
         failed_scenarios=[Failure(scenario=o.job.name, reason=o.error) for o in outcomes if o.error],
-        scenarios=per)
+        scenarios=per,
+        last_trial_vs_learning_off_median=_median([s.last_trial_vs_learning_off for s in per]))
 
 
 def bench_result(outcomes: Sequence[RunOutcome], n: int, seed: int, wall_s: float) -> dict:
@@ -365,7 +381,8 @@ def bench_result(outcomes: Sequence[RunOutcome], n: int, seed: int, wall_s: floa
     result: dict = {"n": n, "seed": seed}
     for fam in FAMILIES:
         mine = [o for o in outcomes if o.job.family == fam.name]
-        result[fam.name] = to_dict(family_stats([o for o in mine if not o.job.twin]))
+        off = {o.job.index: o for o in mine if o.job.twin == "learning_off"}
+        result[fam.name] = to_dict(family_stats([o for o in mine if not o.job.twin], off))
         for twin in TWINS.get(fam.name, ()):
             result[fam.name][twin] = to_dict(family_stats([o for o in mine if o.job.twin == twin]))
     sim_s = sum(t.travel_time_s for o in outcomes for t in o.trials)

@@ -43,6 +43,9 @@ def test_draw_is_deterministic_for_a_seed_and_independent_of_n():
     assert rule == {**sched, "name": sched["name"] + "-thesisrule", "scheduler": {**sched["scheduler"], "guard": False}}
     assert parse_scenario(rule).scheduler.guard is False and parse_scenario(sched).scheduler.guard is True
     assert [t[1] for t in few[4:]] == [""]                    # scenario 2: rc-lb-nmpc, no twin
+    (i5, _, ilc), (i6, twin6, ilc_off) = scenarios.scenario_tables(4, 5)[-2:]   # scenario 3: ilc
+    assert (i5, i6, twin6) == (3, 3, "learning_off") and ilc["controller"]["algorithm"] == "ilc"
+    assert ilc_off == {**ilc, "name": ilc["name"] + "-nolearn", "trials": {**ilc["trials"], "learning": False}}
     # --family keeps the draws of those families only, each the same draw as without it
     only = scenarios.scenario_tables(6, 5, families=["lb-nmpc-scheduled", "rc-lb-nmpc"])
     assert [(i, twin) for i, twin, _ in only] == [(1, ""), (1, "guard_off"), (2, ""), (5, ""), (5, "guard_off")]
@@ -167,8 +170,9 @@ def test_the_draws_cover_loops_terrain_alone_and_combined():
 
 
 # --- the figures, on hand-made summaries ------------------------------------------------------------
-def _job(tmp: Path, name: str, family: str = "lb-nmpc", twin: str = "", planned: int = 3) -> scenarios.Job:
-    return scenarios.Job(index=0, family=family, twin=twin, name=name, preset="husky",
+def _job(tmp: Path, name: str, family: str = "lb-nmpc", twin: str = "", planned: int = 3,
+         index: int = 0) -> scenarios.Job:
+    return scenarios.Job(index=index, family=family, twin=twin, name=name, preset="husky",
                          scenario_file=tmp / f"{name}.toml", run_dir=tmp / name, log_file=tmp / f"{name}.log",
                          planned_trials=planned, lateral_limit_m=0.2, heading_limit_rad=math.radians(10.0))
 
@@ -192,16 +196,20 @@ def _hand_made(tmp: Path) -> list[scenarios.RunOutcome]:
     return [
         # learning gains 0.5, 0.75, -0.2, 0.3 (median 0.4); travel gains 0.2, 0.3, 0.0, 0.5 (median 0.25)
         _outcome(tmp, _job(tmp, "a"), [(0.2, 5, 50, 0, ok), (0.15, 5, 45, 0, ok), (0.1, 5, 40, 0, ok)]),
-        _outcome(tmp, _job(tmp, "b"), [(0.3, 4, 100, 7, ok), (0.2, 4, 90, 0, ok), (0.075, 4, 70, 0, ok)]),
-        _outcome(tmp, _job(tmp, "c"), [(0.1, 12, 20, 3, ok), (0.1, 6, 20, 0, ok), (0.12, 6, 20, 0, ok)]),
-        _outcome(tmp, _job(tmp, "e"), [(0.1, 2, 80, 0, ok), (0.09, 2, 60, 0, ok), (0.07, 2, 40, 0, ok)]),
+        _outcome(tmp, _job(tmp, "b", index=1), [(0.3, 4, 100, 7, ok), (0.2, 4, 90, 0, ok), (0.075, 4, 70, 0, ok)]),
+        _outcome(tmp, _job(tmp, "c", index=2), [(0.1, 12, 20, 3, ok), (0.1, 6, 20, 0, ok), (0.12, 6, 20, 0, ok)]),
+        _outcome(tmp, _job(tmp, "e", index=3), [(0.1, 2, 80, 0, ok), (0.09, 2, 60, 0, ok), (0.07, 2, 40, 0, ok)]),
         # a self-stop in its last trial: no gains from it
-        _outcome(tmp, _job(tmp, "d"), [(0.1, 2, 30, 0, ok), (0.1, 2, 30, 0, ok), (0.05, 2, 12, 0, stop)]),
+        _outcome(tmp, _job(tmp, "d", index=4), [(0.1, 2, 30, 0, ok), (0.1, 2, 30, 0, ok), (0.05, 2, 12, 0, stop)]),
         # a run that failed after one trial that hit the time limit
-        _outcome(tmp, _job(tmp, "f"), [(0.1, 2, 99, 0, "time limit reached")], returncode=1,
+        _outcome(tmp, _job(tmp, "f", index=5), [(0.1, 2, 99, 0, "time limit reached")], returncode=1,
                  log="trial 1/3 NOT COMPLETED\nlbc experiment: bridge exited with code 1\n"),
         _outcome(tmp, _job(tmp, "a-off", twin="learning_off"), [(0.2, 5, 50, 0, ok), (0.19, 5, 50, 0, ok),
                                                            (0.18, 5, 50, 0, ok)]),
+        # ILC on a route that gets harder every pass: worse than its trial 1, better than without learning
+        _outcome(tmp, _job(tmp, "i", family="ilc", planned=2, index=6), [(0.2, 5, 30, 0, ok), (0.3, 5, 30, 0, ok)]),
+        _outcome(tmp, _job(tmp, "i-off", family="ilc", twin="learning_off", planned=2, index=6),
+                 [(0.2, 5, 30, 0, ok), (0.5, 5, 30, 0, ok)]),
         _outcome(tmp, _job(tmp, "s", family="lb-nmpc-scheduled", planned=2), [(0.1, 3, 60, 0, ok), (0.1, 3, 30, 0, ok)]),
         _outcome(tmp, _job(tmp, "s-rule", family="lb-nmpc-scheduled", twin="guard_off", planned=2),
                  [(0.1, 3, 60, 0, ok), (0.3, 12, 28, 4, ok)]),
@@ -225,6 +233,15 @@ def test_figures_from_hand_made_summaries(tmp_path):
     assert [s["scenario"] for s in lb["scenarios"]] == ["a", "b", "c", "e", "d", "f"]
     off = lb["learning_off"]
     assert off["trials"] == 3 and off["completion_rate"] == 1.0
+    # only "a" has a learning-off twin: last trial 0.1 m against 0.18 m without learning
+    assert [s["last_trial_vs_learning_off"] for s in lb["scenarios"]] == [pytest.approx(1 - 0.1 / 0.18, abs=1e-4)] \
+        + [None] * 5
+    assert lb["last_trial_vs_learning_off_median"] == pytest.approx(1 - 0.1 / 0.18, abs=1e-4)
+    assert off["last_trial_vs_learning_off_median"] is None
+    ilc = result["ilc"]
+    assert ilc["learning_gain_median"] == pytest.approx(-0.5)
+    assert ilc["last_trial_vs_learning_off_median"] == pytest.approx(0.4)
+    assert ilc["learning_off"]["learning_gain_median"] == pytest.approx(-1.5)
     assert off["learning_gain_median"] == pytest.approx(0.1) and off["travel_time_gain_median"] == 0.0
     sched = result["lb-nmpc-scheduled"]
     assert sched["travel_time_gain_median"] == pytest.approx(0.5) and sched["learning_gain_median"] == 0.0
@@ -232,11 +249,11 @@ def test_figures_from_hand_made_summaries(tmp_path):
     rule = sched["guard_off"]
     assert rule["violation_trials"] == 1 and rule["worst_excursion_ratio"] == pytest.approx(1.5)
     assert rule["travel_time_gain_median"] == pytest.approx(0.5333, abs=1e-4) and rule["trials"] == 2
-    for fam in ("rc-lb-nmpc", "ilc"):
+    for fam in ("rc-lb-nmpc",):
         assert result[fam]["trials"] == 0 and result[fam]["completion_rate"] is None
         assert result[fam]["learning_gain_median"] is None and result[fam]["self_stops"] == []
     travel = (50 + 45 + 40) + (100 + 90 + 70) + 3 * 20 + (80 + 60 + 40) + (30 + 30 + 12) + 99 + 3 * 50 + (60 + 30) \
-        + (60 + 28)
+        + (60 + 28) + 4 * 30
     assert result["sim_speedup"] == pytest.approx(travel / 100.0, abs=1e-3)
 
 
