@@ -554,7 +554,8 @@ def subsample_rows(n: int, labels: np.ndarray | None, max_points: int, rng: np.r
 
 def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, max_points: int = 1000,
                         init: list[SEHyper] | None = None, groups: np.ndarray | None = None,
-                        min_lengthscales: np.ndarray | None = None) -> FitResult:
+                        min_lengthscales: np.ndarray | None = None,
+                        max_lengthscales: np.ndarray | None = None) -> FitResult:
     """Maximize the log marginal likelihood of each output dimension separately (thesis 5.2.3).
 
     Per output dimension: 1 + `restarts` L-BFGS-B runs on the log hyperparameters within
@@ -569,6 +570,9 @@ def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, ma
     Closed-loop data are narrow (a robot that tracks well stays within centimetres of its route), and the
     likelihood alone then happily fits lengthscales far below any physical scale, which a controller that
     queries the model off its data exploits.
+
+    `max_lengthscales`, shaped the same (inf: no ceiling), lowers the upper bounds: with the floor, it
+    holds a lengthscale the data cannot tell at a chosen value.
 
     `groups` (one label per row) fits the model as it will be used when predictions come from local
     windows of the data (thesis 5.3.2): the objective is the sum of the LMLs of the groups, each an
@@ -604,6 +608,11 @@ def fit_hyperparameters(X, Y, *, restarts: int = 5, rng: np.random.Generator, ma
             floor = np.log(np.maximum(floors[j] if floors.ndim == 2 else floors, 1e-12))
             bounds[:p, 0] = np.maximum(bounds[:p, 0], floor)
             bounds[:p, 1] = np.maximum(bounds[:p, 1], bounds[:p, 0])
+        if max_lengthscales is not None:
+            ceilings = np.asarray(max_lengthscales, dtype=float)
+            ceiling = np.log(np.maximum(ceilings[j] if ceilings.ndim == 2 else ceilings, 1e-12))
+            bounds[:p, 1] = np.minimum(bounds[:p, 1], ceiling)
+            bounds[:p, 0] = np.minimum(bounds[:p, 0], bounds[:p, 1])
         first = init[j] if init is not None else heuristic_hyper(Xc, y)
         if first.p != p:
             raise ValueError(f"init[{j}] has {first.p} lengthscales for {p} inputs")

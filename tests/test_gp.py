@@ -175,6 +175,23 @@ def test_fit_is_deterministic_uses_init_and_stays_in_bounds():
         assert np.all(h.to_log() >= bnd[:, 0] - 1e-9) and np.all(h.to_log() <= bnd[:, 1] + 1e-9)
 
 
+def test_floors_and_ceilings_bound_the_lengthscales_and_equal_ones_hold_them():
+    """min_lengthscales / max_lengthscales: the fitted lengthscales stay within them; a floor equal to its
+    ceiling holds that lengthscale whatever the data say; inf leaves an input without a ceiling."""
+    rng = np.random.default_rng(5)
+    X, Y = _data(rng, n=120, p=3, d=2)
+    free = fit_hyperparameters(X, Y, restarts=1, rng=np.random.default_rng(7))
+    floors = np.array([0.0, 0.7, 0.0])
+    ceilings = np.array([[np.inf, 0.7, 0.05], [np.inf, 0.7, 0.05]])
+    held = fit_hyperparameters(X, Y, restarts=1, rng=np.random.default_rng(7), min_lengthscales=floors,
+                               max_lengthscales=ceilings)
+    for h in held.hypers:
+        assert h.lengthscales[1] == pytest.approx(0.7)
+        assert h.lengthscales[2] <= 0.05 * (1 + 1e-9)
+    assert all(h.lengthscales[2] > 0.05 for h in free.hypers)   # the ceiling did bind
+    assert all(lh <= lf + 1e-9 * abs(lf) for lh, lf in zip(held.lml, free.lml))
+
+
 def test_fit_subsamples_above_max_points():
     rng = np.random.default_rng(4)
     X, Y = _data(rng, n=400, p=3, d=1)

@@ -8,6 +8,7 @@ import pytest
 
 from bench.closed_loop import ClosedLoop, truth_of
 from common.bins import BinPolicy
+from common.gp import GaussianProcess, SEHyper
 from common.robot import RobotParams, robot_from_preset
 from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
@@ -16,6 +17,7 @@ from services.controller.identification import (DEFAULT_LEVEL, TeachRecorder, Te
                                                 fit_turn_gain, identify, identify_drive, scaled_prior,
                                                 teach_observations, teach_residuals)
 from services.controller.uncertainty import PriorStd
+from services.gp_store.authority import V_CMD
 from services.gp_store.config import FitConfig
 from services.gp_store.fitting import fit_route
 from services.localizer.pose_source import PoseSourceSettings
@@ -174,7 +176,9 @@ def test_a_fit_on_the_teach_pass_alone_explains_its_disturbance_by_the_place_not
     later fits, the heading residual's lengthscales in the turn rate and the commands fall to their
     floors (0.3-0.36 rad/s), a dependence the NMPC then steers against; fitted as the store fits the
     teach pass alone (FitConfig.floors), only the place varies it and the slope is explained along the
-    route (a lengthscale of metres)."""
+    route (a lengthscale of metres). The commanded speed's lengthscale is held at
+    teach_speed_lengthscale_mps: the pass's disturbance is believed near its speed and fades to the prior
+    away from it, as a GP of that lengthscale does in closed form."""
     rec, path, _ = teach("roc6", 0.8, loc=PoseSourceSettings(noise_m=0.005))
     m = identify(rec, path, "r1", 0.0)
     obs = [o for _, o in teach_observations(rec, path, ActuatorLag(*m.actuator_tau_s, DT, turn_gain=m.turn_gain))]
@@ -182,11 +186,23 @@ def test_a_fit_on_the_teach_pass_alone_explains_its_disturbance_by_the_place_not
     bins = BinPolicy()
     tiles = np.array([o.vertex // (2 * bins.c_vertex + 1) * 100_000 + bins.speed_bin(o.v_cmd_mps) // (2 * bins.c_velocity + 1)
                       for o in obs])
-    cfg = FitConfig()
-    heading = {teach_only: fit_route("r", A, G, tiles, 3, 1000, 0, None, cfg.floors(teach_only)).dims[2].lengthscales
-               for teach_only in (False, True)}
+    cfg = FitConfig(teach_speed_lengthscale_mps=0.3)
+    fits = {teach_only: fit_route("r", A, G, tiles, 3, 1000, 0, None, cfg.floors(teach_only), None,
+                                  cfg.ceilings(teach_only)).dims[2] for teach_only in (False, True)}
+    heading = {k: fit.lengthscales for k, fit in fits.items()}
     assert min(heading[False][3:]) < 0.5, heading[False]
-    assert min(heading[True][1:]) >= cfg.teach_min_lengthscale_other and heading[True][0] < 5.0, heading[True]
+    others = [ell for i, ell in enumerate(heading[True]) if i not in (0, V_CMD)]
+    assert min(others) >= cfg.teach_min_lengthscale_other and heading[True][0] < 5.0, heading[True]
+    assert heading[True][V_CMD] == pytest.approx(cfg.teach_speed_lengthscale_mps), heading[True]
+    # at the taught speed the model gives the slope's yaw back; 0.4 m/s away, exp(-(0.4 / 0.3)^2 / 2) of it
+    fit = fits[True]
+    gp = GaussianProcess(A, G[:, 2:], [SEHyper(np.array(fit.lengthscales), fit.signal_std, fit.noise_std)])
+    steady = np.abs(A[:, V_CMD] - 0.8) < 0.02
+    taught, away = A[steady], A[steady].copy()
+    away[:, V_CMD] += 0.4
+    m_taught, m_away = gp.mean(taught)[:, 0], gp.mean(away)[:, 0]
+    slope = np.abs(m_taught) > 0.5 * np.abs(m_taught).max()
+    assert np.median(m_away[slope] / m_taught[slope]) == pytest.approx(np.exp(-0.5 * (0.4 / 0.3) ** 2), abs=0.01)
 
 
 def test_a_route_without_turns_keeps_the_turn_gain_at_one():

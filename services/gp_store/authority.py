@@ -33,7 +33,7 @@ import numpy as np
 from common.gp import GaussianProcess, SEHyper
 
 HEADING = 2                            # output dimension of g (G_NAMES dtheta_rad)
-W_ACT, W_CMD, W_CMD_PREV = 4, 6, 8     # inputs of a (A_NAMES)
+W_ACT, V_CMD, W_CMD, W_CMD_PREV = 4, 5, 6, 8     # inputs of a (A_NAMES)
 TURN_INPUTS = (W_ACT, W_CMD, W_CMD_PREV)
 MAX_FRACTION_BELOW = 0.01              # of the fitted points, the share allowed below min_share (outliers)
 

@@ -1,10 +1,11 @@
 """Typed configuration of the experience store service."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from common.bins import BinPolicy
-from services.gp_store.authority import HEADING, W_ACT, W_CMD_PREV
+from services.gp_store.authority import HEADING, V_CMD, W_ACT, W_CMD_PREV
 
 
 # How fast a disturbance can physically change with each input of a (experience.py A_NAMES): terrain
@@ -30,6 +31,12 @@ class FitConfig:
     # the teach pass alone, every input but s has at least this lengthscale (its own units): the place
     # explains the disturbance
     teach_min_lengthscale_other: float = 100.0
+    # ... except the commanded speed, whose lengthscale (m/s) this holds, if finite: the pass saw one speed,
+    # and a terrain's push per period is the same at any speed on a slope but grows with speed over rough
+    # ground and ruts. Finite, the pass's disturbance is believed near its speed and fades to the prior (zero
+    # mean, the prior's spread) away from it. 0: believed at any speed, the speed's lengthscale as the other
+    # inputs' (docs/results.md, stop 48)
+    teach_speed_lengthscale_mps: float = 0.0
     # a repeat's heading model must leave the controller at least this share of its nominal turn authority
     # (services/gp_store/authority.py); one that does not is refitted with the turn-rate inputs switched off
     # (lengthscales >= teach_min_lengthscale_other). Low on purpose: a skid-steer at speed really turns at a
@@ -49,6 +56,8 @@ class FitConfig:
             raise ValueError("min_lengthscales needs 9 values >= 0, one per input of a")
         if self.teach_min_lengthscale_other < 0:
             raise ValueError("teach_min_lengthscale_other must be >= 0")
+        if self.teach_speed_lengthscale_mps < 0:
+            raise ValueError("teach_speed_lengthscale_mps must be >= 0 (0: the teach pass holds at any speed)")
         if not 0 <= self.min_turn_authority < 1:
             raise ValueError("min_turn_authority must be in [0, 1)")
 
@@ -58,12 +67,23 @@ class FitConfig:
         off = self.teach_min_lengthscale_other
         if teach_only:
             row = self.min_lengthscales[:1] + [max(x, off) for x in self.min_lengthscales[1:]]
+            if self.teach_speed_lengthscale_mps > 0:
+                row[V_CMD] = min(self.teach_speed_lengthscale_mps, off)
             return [list(row) for _ in range(3)]
         rows = [list(self.min_lengthscales) for _ in range(3)]
         if not self.heading_from_turn_history:
             for i in TURN_HISTORY:
                 rows[HEADING][i] = max(rows[HEADING][i], off)
         return rows
+
+    def ceilings(self, teach_only: bool) -> list[list[float]] | None:
+        """The lengthscale ceilings of a fit (None: none): on the teach pass alone, the commanded speed's
+        lengthscale is held at `teach_speed_lengthscale_mps` (one speed seen, the likelihood cannot set it)."""
+        if not teach_only or self.teach_speed_lengthscale_mps <= 0:
+            return None
+        row = [math.inf] * len(self.min_lengthscales)
+        row[V_CMD] = min(self.teach_speed_lengthscale_mps, self.teach_min_lengthscale_other)
+        return [list(row) for _ in range(3)]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -34,13 +34,15 @@ class FitResult:
 def fit_route(path_id: str, A: np.ndarray, G: np.ndarray, tiles: np.ndarray | None, restarts: int,
               max_points: int, seed: int, init: list[HyperDim] | None,
               min_lengthscales: list[float] | list[list[float]] | None,
-              authority: AuthorityRule | None = None) -> FitResult:
+              authority: AuthorityRule | None = None,
+              max_lengthscales: list[list[float]] | None = None) -> FitResult:
     """Maximize the log marginal likelihood per output dimension, from `init` (a previous fit's
     dimensions) if given.
 
     With `tiles`, the likelihood is that of the local windows the controller predicts from (each an
     independent GP), so the hyperparameters describe how the disturbance varies *within* a place;
-    `min_lengthscales` are the physical floors (FitConfig.floors: one row per output, or one for all). With `authority`, a heading model that
+    `min_lengthscales` are the physical floors (FitConfig.floors: one row per output, or one for all),
+    `max_lengthscales` the ceilings (FitConfig.ceilings). With `authority`, a heading model that
     takes the steering away from the controller is refitted without the turn-rate inputs (authority.py)."""
     t0 = time.perf_counter()
     hypers = None
@@ -48,7 +50,8 @@ def fit_route(path_id: str, A: np.ndarray, G: np.ndarray, tiles: np.ndarray | No
         hypers = [SEHyper(np.asarray(d.lengthscales, dtype=float), d.signal_std, d.noise_std) for d in init]
     floors = np.asarray(min_lengthscales, dtype=float) if min_lengthscales else None
     res = fit_hyperparameters(A, G, restarts=restarts, rng=np.random.default_rng(seed), max_points=max_points,
-                              init=hypers, groups=tiles, min_lengthscales=floors)
+                              init=hypers, groups=tiles, min_lengthscales=floors,
+                              max_lengthscales=None if max_lengthscales is None else np.asarray(max_lengthscales))
     fitted, lml, note = list(res.hypers), list(res.lml), ""
     if authority is not None and len(A):
         rows = np.arange(len(A)) if len(A) <= max_points else subsample_rows(len(A), tiles, max_points,

@@ -278,7 +278,7 @@ class StoreService(Service):
                                                                f.teach_min_lengthscale_other)
         state.running = self._pool.submit(fit_route, path_id, A, G, tiles if f.local_windows else None,
                                           f.restarts, f.max_points, f.seed, prev.dims if prev else None,
-                                          f.floors(teach_only), rule)
+                                          f.floors(teach_only), rule, f.ceilings(teach_only))
         state.running.add_done_callback(lambda fut: self.inbox.put(("fit_done", (path_id, model, fut))))
 
     def _fit_done(self, path_id: str, model: str, fut: cf.Future) -> None:
