@@ -365,7 +365,7 @@ class Experiment:
         t_wall = time.monotonic()
         self.control("bridge", "start", "repeat", trial, speed, limit_s)
         finished, stopping, hint = False, False, 0
-        stopped_since, halt_reason = None, ""
+        stopped_since, halt_reason, cut_s = None, "", None
         count = self.sc.trials.count
         last_progress = None
         gone: dict[str, float] = {}     # service -> when its liveliness token went (a blip, until REJOIN_S)
@@ -408,7 +408,7 @@ class Experiment:
                 stopped_since = (stopped_since if stopped_since is not None else msg.stamp_s) \
                     if msg.state == "stopped" else None
                 if stopped_since is not None and msg.stamp_s - stopped_since >= STOPPED_ENDS_TRIAL_S and not stopping:
-                    stopping = True
+                    stopping, cut_s = True, msg.stamp_s
                     halt_reason = f"controller stopped: {msg.reason}"
                     self.control("bridge", "stop", "repeat", trial)
             elif kind == "loc":
@@ -419,8 +419,10 @@ class Experiment:
                 rec.end_reason = "end of route" if finished else (halt_reason or msg.reason)
                 end_stamp_s = msg.stamp_s
                 break
-        self._late_truth(rec, end_stamp_s)
+        self._late_truth(rec, end_stamp_s if cut_s is None else min(end_stamp_s, cut_s))
         self._late_statuses(rec)
+        if cut_s is not None:   # the trial ended at the deciding status, not when the stop reached the bridge
+            rec.cut_after(cut_s)
         rec.wall_s = time.monotonic() - t_wall
         return rec
 

@@ -26,6 +26,14 @@ class TrialRecord:
     end_reason: str = ""
     wall_s: float = 0.0
 
+    def cut_after(self, stamp_s: float) -> None:
+        """Keep only what happened up to robot time `stamp_s`: the end of a trial the runner decided at a
+        status of that stamp. The ticks the bridge still runs until the runner's stop reaches it depend on
+        the wall clock, so they are not part of the trial."""
+        self.truth = [t for t in self.truth if t.stamp_s <= stamp_s + 1e-9]
+        self.status = [s for s in self.status if s.stamp_s <= stamp_s + 1e-9]
+        self.loc = [m for m in self.loc if m.stamp_s <= stamp_s + 1e-9]
+
     def stepped_status(self) -> list[ControllerStatus]:
         """The statuses of the ticks the bridge stepped in this trial, its last one aside: statuses from
         before the first tick (the controller's wall-clock heartbeat while it waits) and whether the

@@ -311,6 +311,17 @@ def test_a_trial_that_did_not_complete_says_why():
     assert "trial  2/3 done:" in trial_line(3, rec, m)
 
 
+def test_a_trial_ended_by_the_runner_keeps_what_happened_up_to_the_deciding_status():
+    """The bridge runs a few more ticks until the runner's stop reaches it, as many as the wall clock
+    lets: the record is cut at the status the runner decided on, so the summary does not depend on them."""
+    from types import SimpleNamespace as At
+    rec = TrialRecord(trial=1, speed_mps=1.0)
+    rec.truth, rec.status, rec.loc = ([At(stamp_s=0.1 * k) for k in range(1, 40)] for _ in range(3))
+    rec.cut_after(2.5)
+    for kept in (rec.truth, rec.status, rec.loc):
+        assert len(kept) == 25 and kept[-1].stamp_s == pytest.approx(2.5)
+
+
 @pytest.mark.integration
 def test_a_short_run_reports_why_a_trial_ended_and_what_the_counts_are(tmp_path):
     """One trial cut short by its time limit, through the real CLI: the console names the reason,

@@ -8,6 +8,7 @@ import pytest
 from common.messages import LocState
 from common.path import Path
 from common.scenario import TerrainPatch
+from services.controller.core import ControllerCore
 from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult
 from services.controller.tracker import PathTracker, TrackerLimits
@@ -241,3 +242,30 @@ def test_teach_pass_failure_shifts_the_estimate_not_the_robot():
     inside = (s > 9.0) & (s < 10.0)
     assert np.min(r.lateral_m[inside]) < -0.15
     assert np.max(np.abs(r.lateral_m[s < 7.0])) < 0.05
+
+
+class StopsAt:
+    """Straight ahead until `stop_s`, then the law asks for a safety stop (as C-/RC-LB-NMPC do)."""
+    name = "stops-at"
+
+    def __init__(self, stop_s: float):
+        self.stop_s = stop_s
+
+    def angular(self, ctx):
+        return LawResult(0.0, stop_reason="test stop" if ctx.now_s >= self.stop_s else "")
+
+
+def test_a_robot_held_at_rest_after_a_safety_stop_yields_no_experiences():
+    """Experiences come from every refined estimate while the robot drives; once stopped, none: a robot at
+    rest shows nothing of how it moves (its estimates' noise looks like motion), and how long it is held
+    depends on when the runner ends the trial."""
+    core = ControllerCore(PATH, PathTracker(PATH, StopsAt(1.0), LIMITS, speed_mps=0.5), 0.1)
+    states, observed = [], []
+    for k in range(1, 21):
+        t = round(0.1 * k, 1)
+        jitter = 0.02 * (k % 2) if k > 10 else 0.0     # 2 cm of localization noise: 0.2 m/s apparent
+        d, obs = core.step(t, k, loc(t, x=1.0 + 0.05 * min(k, 10) + jitter))
+        states.append(d.state)
+        observed.append(obs is not None)
+    assert states[:9] == ["tracking"] * 9 and set(states[10:]) == {"stopped"}
+    assert sum(observed[1:9]) >= 7 and not any(observed[10:])

@@ -36,6 +36,10 @@ class ControllerCore:
         self.kappa = self.calibration.factors_at(self.s_m)
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors)
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
+        if decision.state == "stopped":
+            # a robot held at rest after a safety stop shows nothing of how it moves, and how many such steps
+            # a trial has depends on when the runner ends it
+            obs = None
         return decision, obs
 
     @property
