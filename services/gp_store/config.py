@@ -31,9 +31,9 @@ class FitConfig:
     # the teach pass alone, every input but s has at least this lengthscale (its own units): the place
     # explains the disturbance
     teach_min_lengthscale_other: float = 100.0
-    # ... except the commanded speed, whose lengthscale (m/s) this holds, if finite: the pass saw one speed,
+    # ... except the commanded speed, whose lengthscale (m/s) this holds, if above 0: the pass saw one speed,
     # and a terrain's push per period is the same at any speed on a slope but grows with speed over rough
-    # ground and ruts. Finite, the pass's disturbance is believed near its speed and fades to the prior (zero
+    # ground and ruts. Held, the pass's disturbance is believed near its speed and fades to the prior (zero
     # mean, the prior's spread) away from it. 0: believed at any speed, the speed's lengthscale as the other
     # inputs' (docs/results.md, stop 48)
     teach_speed_lengthscale_mps: float = 0.0
