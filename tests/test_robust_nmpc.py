@@ -700,3 +700,44 @@ def test_the_reported_spread_is_the_commanded_plans_own_with_a_model_share_at_a_
                          q.ref.direction_rad[1:])[:, 1]
     kappa = np.array((1.0,) + (9.0,) * 9)
     np.testing.assert_allclose(sig, np.sqrt(loc ** 2 + kappa * (model ** 2 - loc ** 2)), rtol=1e-6)
+
+
+def _ackermann_slowing_step(kappa_max: float = 0.3):
+    """An Ackermann (steering-rate limit in the model, curvature limit in the bounds) 2 cm off a narrow
+    corridor's centre at 1 m/s, warm-started by its own first step: the law slows down hard."""
+    path = arc_path()
+    narrow = Corridor(path.s, 0.06, math.radians(20))
+    ctx = dataclasses.replace(ctx_for(path, path.pose_at(14.0) + np.array([0.0, 0.03, 0.05]), v=1.0,
+                                      corridor=narrow, prev_cmd=(1.0, 0.0)),
+                              w_limit=kappa_max, w_limit_at=lambda v: min(2.0, abs(v) * kappa_max))
+    law = RCLBNMPCLaw(NMPCSettings(sqp_iter=10, curvature_rate_max_per_ms=0.25, actuator_tau_s=(0.5, 0.15)), DT)
+    law.angular(ctx)
+    return law, law.angular(ctx), ctx
+
+
+def test_an_ackermanns_plan_keeps_its_curvature_limit_at_the_speeds_it_slows_to():
+    """The SQP of a curvature-steered robot steps in (v, c), w = v c: its turn-rate bound is the curvature
+    limit times each step's own speed. Stepping in (v, w) took that bound at the speeds it started from,
+    and a plan that slowed from 0.64 to 0.05 m/s kept a turn rate of 0.042 rad/s, a curvature of 0.83
+    against a limit of 0.30 (the tracker then clipped it to full lock)."""
+    law, res, ctx = _ackermann_slowing_step()
+    it = law.last_step.result.iterate
+    assert it.v.min() < 0.9                                          # it did slow down
+    assert np.all(np.abs(it.w) <= np.array([ctx.w_limit_at(v) for v in it.v]) + 1e-6)
+
+
+def test_the_curvature_steps_jacobian_matches_finite_differences_of_the_move():
+    law, _, _ = _ackermann_slowing_step()
+    nlp = law.last_step.nlp
+    assert nlp.problem.curvature_steered
+    K = nlp.problem.K
+    v = np.linspace(0.3, 0.8, K) * nlp.v_max                         # inside the speed bounds
+    it = nlp.evaluate(v, v * np.linspace(0.1, -0.06, K))
+    from services.controller.corridor_sqp import _by_curvature
+    J = _by_curvature(it.J, it.v, it.w)
+    h = 1e-6
+    for i in (0, 3, K, K + 4):
+        d = np.zeros(2 * K)
+        d[i] = h
+        fd = (nlp.evaluate(*nlp.moved(it, d)).r - nlp.evaluate(*nlp.moved(it, -d)).r) / (2 * h)
+        assert np.allclose(fd, J[:, i], rtol=1e-3, atol=1e-4 * max(1.0, np.abs(fd).max())), i

@@ -10,7 +10,10 @@ the lateral and heading errors of the mean must stay inside the corridor tighten
 covariance is propagated once per step around the starting plan; within the solve the lateral sigma
 follows the speeds to first order (`dsig_v`). Each iteration linearizes the rollout (analytic
 sensitivities for v and w) and solves the QP of sqp_qp.py, then takes the damped step beta of eq. 7.11
-that lowers the merit (cost + slack price); a step below tol ends the solve.
+that lowers the merit (cost + slack price); a step below tol ends the solve. A curvature-steered robot
+(an Ackermann) steps in speed and curvature c = w / v instead: its turn-rate bound is its curvature limit
+times each step's own speed, and a plan that slows down keeps its curvatures instead of turning the
+turn rates of a faster plan into curves tighter than its steering has.
 """
 from __future__ import annotations
 
@@ -122,17 +125,44 @@ class CorridorNLP:
         return Iterate(v, w, X, E, dE, r, J, sig, merit, float(viol.max()), ref)
 
     def step(self, it: Iterate, qp: CorridorQP, trust_v: float, trust_w: float) -> np.ndarray | None:
-        """The QP's step (2K,) from `it` inside the actuator limits and the trust region, or None."""
+        """The QP's step (2K,) from `it` inside the actuator limits and the trust region, or None: (dv, dw),
+        or (dv, dc) in the curvature c = w / v for a curvature-steered robot (`moved`)."""
         s = self.problem.s
         w_lim = self.w_limits(it.v)
-        lo_d = np.concatenate([np.maximum(s.v_min_mps - it.v, -trust_v), np.maximum(-w_lim - it.w, -trust_w)])
-        hi_d = np.concatenate([np.minimum(self.v_max - it.v, trust_v), np.minimum(w_lim - it.w, trust_w)])
+        J, dE = it.J, it.dE
+        if self.problem.curvature_steered:
+            J, dE = _by_curvature(J, it.v, it.w), _by_curvature(dE, it.v, it.w)
+            c, c_lim, trust_c = it.w / it.v, w_lim / it.v, trust_w / it.v
+            lo_w, hi_w = np.maximum(-c_lim - c, -trust_c), np.minimum(c_lim - c, trust_c)
+        else:
+            lo_w, hi_w = np.maximum(-w_lim - it.w, -trust_w), np.minimum(w_lim - it.w, trust_w)
+        lo_d = np.concatenate([np.maximum(s.v_min_mps - it.v, -trust_v), lo_w])
+        hi_d = np.concatenate([np.minimum(self.v_max - it.v, trust_v), hi_w])
         tight, free = self.tighten(it.sig)
         if self.sig_floor is not None:
             free &= it.sig[:, 1] > self.sig_floor
-        dx, _ = qp.solve(it.r, it.J, it.E, it.dE, tight, self.alpha * self.dsig_v * free[:, None],
+        dx, _ = qp.solve(it.r, J, it.E, dE, tight, self.alpha * self.dsig_v * free[:, None],
                          self.lo_lat, self.hi_lat, self.head_lim, lo_d, np.maximum(hi_d, lo_d))
         return dx
+
+    def moved(self, it: Iterate, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(v, w) after the step d from `step`: a curvature-steered robot keeps the step's curvature at
+        its new speed, so a plan that slows down does not turn its old turn rate into a tighter curve."""
+        K = len(it.v)
+        v = np.clip(it.v + d[:K], self.problem.s.v_min_mps, self.v_max)
+        if self.problem.curvature_steered:
+            return v, v * (it.w / it.v + d[K:])
+        return v, it.w + d[K:]
+
+
+def _by_curvature(D: np.ndarray, v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Derivatives by (v, w) in the last axis (2K) turned into derivatives by (v, c), w = v c: the
+    curvature a curvature-steered robot turns at is linear in c, not in w (w / v at a crawl)."""
+    K = len(v)
+    out = D.copy()
+    out[..., :K] += D[..., K:] * (w / v)
+    out[..., K:] *= v
+    return out
 
 
 def solve_corridor(nlp: CorridorNLP, start: Iterate, qp: CorridorQP, trust_v: float = 0.5,
@@ -140,7 +170,6 @@ def solve_corridor(nlp: CorridorNLP, start: Iterate, qp: CorridorQP, trust_v: fl
     """SQP from `start` (one evaluation already spent on it), bounded by sqp_iter iterations and
     max_evals residual evaluations, as LB/MM are."""
     s = nlp.problem.s
-    K = nlp.problem.K
     cur, iters, evals, status = start, 0, 1, "budget"
     for it in range(s.sqp_iter):
         if evals >= s.max_evals:
@@ -154,7 +183,7 @@ def solve_corridor(nlp: CorridorNLP, start: Iterate, qp: CorridorQP, trust_v: fl
         for beta in (1.0, 0.5, 0.25):                 # eq. 7.11's beta, by the merit function
             if evals >= s.max_evals:
                 break
-            cand = nlp.evaluate(np.clip(cur.v + beta * dx[:K], s.v_min_mps, nlp.v_max), cur.w + beta * dx[K:])
+            cand = nlp.evaluate(*nlp.moved(cur, beta * dx))
             evals += 1
             if cand.merit < cur.merit - 1e-12:
                 accepted = cand

@@ -133,6 +133,11 @@ class HorizonProblem:
         self._memo: list[tuple] = []   # the last rollouts: a solver's final iterate is usually among them
 
     @property
+    def curvature_steered(self) -> bool:
+        """The robot turns by the curvature w / v of its command (an Ackermann's steering, with its rate limit)."""
+        return self._rate_lag is not None
+
+    @property
     def x0(self) -> np.ndarray:
         return self.start.x0
 
