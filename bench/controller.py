@@ -144,14 +144,16 @@ def _casadi_gp_mean(model):
     if model is None:
         return None
     center, Xc, dims = model.mean_terms()
+    v_floor = getattr(model, "v_floor", 0.0)       # the fade at rest (rest_fade.py)
 
     def mean(a):
         out = []
+        fade = ca.fmin(1.0, ca.fmax(a[3], 0.0) / v_floor) if v_floor > 0.0 else 1.0
         for inv_ell, sf2, alpha in dims:
             diff = (ca.repmat(ca.transpose(a - ca.DM(center)), Xc.shape[0], 1) - ca.DM(Xc)) * ca.repmat(
                 ca.DM(inv_ell).T, Xc.shape[0], 1)
             k = sf2 * ca.exp(-0.5 * ca.sum2(diff ** 2))
-            out.append(ca.dot(k, ca.DM(alpha)))
+            out.append(fade * ca.dot(k, ca.DM(alpha)))
         return out
     return mean
 

@@ -95,3 +95,12 @@ def test_prepare_builds_the_next_steps_window_so_the_step_does_not():
         assert models.builds == 2 and gp is not None and gp is not first
         models.model_for(dataclasses.replace(here, s_m=here.s_m + 2.0))   # not prepared: built in the step
         assert models.builds == 3 and models.prepared == 1
+
+
+def test_the_windows_model_fades_below_the_slowest_speed_its_experiences_rolled_at():
+    path, store = straight(), Store(range(10))
+    model = LocalModels(store.window, hyper, 1.0, V_BIN).model_for(ctx(path, 0.7))
+    assert model.v_floor == np.percentile(np.abs(store.A[:, 3]), 10.0) > 0.0
+    a = store.A[0].copy()
+    a[3] = 0.5 * model.v_floor
+    np.testing.assert_allclose(model.mean(a[None])[0], 0.5 * model.gp.mean(a[None])[0])

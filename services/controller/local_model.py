@@ -6,6 +6,7 @@ The node builds the next step's window on its own thread once the command is out
 entering a new window does not delay a command (not on another thread: Python threads contend for the
 interpreter). With no hyperparameters or no experiences, or if a window's GP cannot be built, there is
 no model and the controller runs on the nominal unicycle, which is exactly the thesis's first trial.
+Below the slowest speed of a window's experiences its mean fades to zero at rest (rest_fade.py).
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import numpy as np
 from common.gp import GaussianProcess, SEHyper
 from common.messages import HyperMsg
 from services.controller.laws import StepContext
+from services.controller.rest_fade import RestFaded
 from services.controller.uncertainty import variance_gp
 
 Window = tuple[np.ndarray, np.ndarray]     # (A (n, 9), G (n, 3))
@@ -45,7 +47,7 @@ class LocalModels:
         self._bin: int | None = None
         self._away = 0
         self._bin_with_data: int | None = None
-        self._cache: OrderedDict[tuple, GaussianProcess] = OrderedDict()
+        self._cache: OrderedDict[tuple, RestFaded] = OrderedDict()
         self.last_n = 0
         self.last_version = 0
         self.builds = 0
@@ -82,7 +84,7 @@ class LocalModels:
         return (center, int(np.floor(speed / self.v_bin)), h.version, len(A), float(A[0, 0]), float(A[-1, 0]),
                 float(A[:, 3].sum()))
 
-    def model_for(self, ctx: StepContext) -> GaussianProcess | None:
+    def model_for(self, ctx: StepContext) -> RestFaded | None:
         h = self.hyper()
         if h is None:
             self.last_n = self.last_version = 0
@@ -123,7 +125,7 @@ class LocalModels:
             A, G = self.window(center, speed)
         return speed, A, G
 
-    def _gp(self, center: int, speed: float, h: HyperMsg, A: np.ndarray, G: np.ndarray) -> GaussianProcess | None:
+    def _gp(self, center: int, speed: float, h: HyperMsg, A: np.ndarray, G: np.ndarray) -> RestFaded | None:
         """The window's GP, from the cache or built now (None: no data, or it cannot be built)."""
         if len(A) == 0:
             return None
@@ -140,6 +142,7 @@ class LocalModels:
             return None
         if self.variance_caps is not None:
             variance_gp(gp, self.variance_caps)     # its variance's GP too, while between steps
+        gp = RestFaded.of(gp, A)
         self.builds += 1
         self._cache[key] = gp
         while len(self._cache) > self.keep:
