@@ -36,6 +36,7 @@ from services.controller.horizon import HorizonProblem
 from services.controller.laws import LawResult, StepContext
 from services.controller.fl import FLGains
 from services.controller.local_model import LocalModels
+from services.controller.rest_fade import RestFaded
 from services.controller.minmax import SIGNS
 from services.controller.nmpc import build_problem
 from services.controller.registry import STEERING_LAWS, LawInputs
@@ -144,7 +145,7 @@ def _casadi_gp_mean(model):
     if model is None:
         return None
     center, Xc, dims = model.mean_terms()
-    v_floor = getattr(model, "v_floor", 0.0)       # the fade at rest (rest_fade.py)
+    v_floor = model.v_floor if isinstance(model, RestFaded) else 0.0     # the fade at rest
 
     def mean(a):
         out = []

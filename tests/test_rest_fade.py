@@ -48,3 +48,11 @@ def test_the_gradient_matches_finite_differences_below_the_slowest_speed():
         fd = (model.mean_and_grad(a + e)[0] - model.mean_and_grad(a - e)[0]) / (2 * h)
         np.testing.assert_allclose(dg[:, i], fd, rtol=1e-5, atol=1e-10)
     assert abs(dg[2, 3]) > 1e-3          # the fade's own term: the push grows with the rolled speed
+
+
+def test_the_variance_gp_is_the_faded_model_itself_where_nothing_is_capped():
+    """DisturbanceVariance then takes mean and variance from one prediction, as with a plain GP."""
+    A, gp = window()
+    model = RestFaded(gp, 0.8)
+    assert model.capped((0, 5, 6), (100.0, 100.0, 100.0)) is model
+    assert model.capped((0, 5, 6), (0.1, 0.1, 0.1)) is gp.capped((0, 5, 6), (0.1, 0.1, 0.1))

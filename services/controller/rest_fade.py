@@ -64,9 +64,11 @@ class RestFaded:
         mean, *rest = self.gp.predict(A, coverage)
         return (mean * self.factor(A[:, V_ACT])[:, None], *rest)
 
-    def capped(self, dims: tuple[int, ...], caps: tuple[float, ...]) -> GaussianProcess:
-        """The GP under capped lengthscales, for its variance (uncertainty.variance_gp): not faded."""
-        return self.gp.capped(dims, caps)
+    def capped(self, dims: tuple[int, ...], caps: tuple[float, ...]) -> RestFaded | GaussianProcess:
+        """The GP under capped lengthscales, for its variance (uncertainty.variance_gp); itself where no
+        lengthscale is capped, so that the variance and the mean still come from one prediction."""
+        capped = self.gp.capped(dims, caps)
+        return self if capped is self.gp else capped
 
     def mean_terms(self):
         """The GP's own mean terms (GaussianProcess.mean_terms); the fade is `factor` on a_3."""
