@@ -217,7 +217,8 @@ class ControllerStatus(Message):
 class NominalModel(Message):
     """The controller's nominal model of one robot, identified from a teach pass (drive lags against
     the wheel odometry, the a-priori uncertainty from the model's residuals on that pass)."""
-    SCHEMA_VERSION = 3    # v2: curvature_rate_max_per_ms; v3: turn_gain
+    SCHEMA_VERSION = 4    # v2: curvature_rate_max_per_ms; v3: turn_gain; v4: place_bin_m, place_spread_factors
+    MAX_BYTES = 1024 * 1024   # a row of place factors per 2 m: a 1 km route's take ~140 kB
     stamp_s: float
     robot: str
     path_id: str                      # the teach pass it was identified on
@@ -244,6 +245,8 @@ class NominalModel(Message):
     prior_std_per_radps: tuple[float, float, float]
     prior_scale: tuple[float, float, float]          # of the default prior's shape, from the teach residuals
     spread_factors: list[float]       # per horizon step, on the predicted spread, to start the online check from
+    place_bin_m: float                # ... and per place_bin_m of the route from its start, per horizon step, the
+    place_spread_factors: list[list[float]]   # factors the teach pass needed there (its memory of places)
     residual_samples: int
     notes: list[str]                  # what could not be identified, and what was kept instead
 
@@ -257,6 +260,9 @@ class NominalModel(Message):
             raise ValueError("dt_s > 0 and non-negative time constants, dead times and prior std required")
         if not self.turn_gain > 0:
             raise ValueError("turn_gain must be > 0")
+        if not self.place_bin_m > 0 or any(len(r) != len(self.spread_factors) or min(r, default=1.0) < 1.0
+                                           for r in self.place_spread_factors):
+            raise ValueError("place_bin_m > 0 and place spread factors >= 1, as many per place as spread_factors")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from common.path import Path
-from services.controller.calibration import MARGIN, PLACE_BIN_M, WINDOW, Prediction, SpreadCalibration
+from services.controller.calibration import (MARGIN, PLACE_BIN_M, WINDOW, Prediction, SpreadCalibration,
+                                             teach_places)
 from services.controller.horizon_covariance import HorizonCovariance
 from services.controller.uncertainty import propagate, route_sigmas
 
@@ -145,6 +146,23 @@ def test_a_places_surprise_widens_the_spread_there_on_the_next_pass_and_nowhere_
     third = second.continued()
     drive_pass(third, lambda s: 0.0)
     assert third.continued().factors_at(41.0)[0] == 1.0
+
+
+def test_the_teach_passs_needs_by_place_widen_the_first_trial_there_until_it_has_passed_itself():
+    """The teach pass needed twice the spread at 40-42 m (identification.place_factors, 1 m rows): the
+    first trial starts widened there and at the neighbouring bins (4x the variance, with the margin), not
+    elsewhere; after its own calibrated pass the place narrows again."""
+    rows = [[1.0, 1.0]] * 100
+    rows[40] = rows[41] = [2.0, 1.5]
+    places = teach_places(1.0, rows, 3)
+    assert set(places) == {20}                      # 1 m rows into PLACE_BIN_M bins, calm places left out
+    np.testing.assert_allclose(places[20], [4.0, 2.25, 2.25])   # squared, the last step's carried on
+    first = SpreadCalibration(horizon=3, places=places)
+    assert first.factors_at(41.0)[0] == pytest.approx(MARGIN * 4.0)
+    assert first.factors_at(38.5)[1] == pytest.approx(MARGIN * 2.25)
+    assert first.factors_at(60.0)[0] == 1.0
+    drive_pass(first, lambda s: 0.0)
+    assert first.continued().factors_at(41.0)[0] == 1.0
 
 
 def test_a_factor_learned_at_speed_widens_only_the_models_share_of_the_spread():

@@ -1,6 +1,7 @@
 """Identification of the nominal model from the teach pass (services/controller/identification.py):
 against synthetic first-order data with known lag, gain and dead time, against the simulator's own
 drive parameters, and the prior's scale against residuals of known spread."""
+import dataclasses
 import math
 
 import numpy as np
@@ -14,8 +15,8 @@ from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
 from services.controller.actuator import ActuatorLag
 from services.controller.identification import (DEFAULT_LEVEL, TeachRecorder, TeachResiduals, fit_channel,
-                                                fit_turn_gain, identify, identify_drive, scaled_prior,
-                                                teach_observations, teach_residuals)
+                                                fit_turn_gain, identify, identify_drive, place_factors,
+                                                scaled_prior, teach_observations, teach_residuals)
 from services.controller.uncertainty import PriorStd
 from services.gp_store.authority import V_CMD
 from services.gp_store.config import FitConfig
@@ -272,6 +273,27 @@ def residuals(G, U, step_var=0.0, decorrelated_var=0.0) -> TeachResiduals:
     full = lambda v: np.broadcast_to(np.asarray(v, dtype=float), G.shape).copy()   # noqa: E731
     return TeachResiduals(G, U, full(step_var), full(decorrelated_var), U[:, 1] * DT, np.zeros(len(G)),
                           np.zeros(len(G)))
+
+
+def test_the_teach_passs_needs_are_kept_by_place():
+    """A straight teach pass at 1 m/s whose residuals are nil but for a heading push of d per period over
+    20-26 m (a rough patch): a window of j periods begun inside it sums j d against the prior's sqrt(j)
+    sigma, so its place needs sqrt(j) d / (3 sigma) at step j, in closed form; places whose windows never
+    reach the patch need nothing."""
+    n, d = 1000, 0.02
+    U = np.column_stack([np.ones(n), np.zeros(n)])
+    G = np.zeros((n, 3))
+    along = 0.1 * np.arange(n)
+    G[(along >= 20.0) & (along < 26.0), 2] = d
+    res = dataclasses.replace(residuals(G, U), along_m=along)
+    prior = PriorStd()
+    sigma = prior.base[2] + prior.per_mps[2]
+    places = place_factors(res, prior)
+    assert places.shape == (50, 30)
+    for j in (1, 10, 30):
+        assert places[10, j - 1] == pytest.approx(max(1.0, math.sqrt(j) * d / (3 * sigma)))   # 20-22 m
+    assert np.all(places[:8] == 1.0) and np.all(places[13:] == 1.0)    # windows from < 16 m, from >= 26 m
+    assert places[10, 0] == 1.0 and places[10, 9] > 1.5
 
 
 def test_the_localizers_step_noise_lowers_an_inflated_prior_to_the_default_level_at_most():

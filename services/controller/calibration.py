@@ -40,7 +40,9 @@ enter the next trial's rough patch, at a speed the calm window allows, with its 
 each need is also kept by the place the prediction was made at (PLACE_BIN_M bins of the route's
 distance); near a place, kappa_j is at least MARGIN times the largest need of the latest pass over it
 (the neighbouring bins included). The latest pass replaces an earlier one's needs, so a model that has
-learned the place narrows the spread there one trial later.
+learned the place narrows the spread there one trial later. The teach pass is a route's first pass: its
+needs by place (identification.place_factors) start trial 1's memory, so that a rough patch the teach
+pass crossed is not entered unwidened after a calm stretch has emptied the window of the teach factors.
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
@@ -153,6 +155,21 @@ class SpreadCalibration:
         """sqrt(kappa_j): what each step's predicted standard deviations are multiplied by, at route
         distance `s_m`."""
         return tuple(float(x) for x in np.sqrt(self.factors_at(s_m)))
+
+
+def teach_places(bin_m: float, rows: list[list[float]], horizon: int) -> dict[int, np.ndarray]:
+    """The memory of places a route's first trial starts with: the teach pass's factors on the spread
+    needed per place (identification.place_factors, one row per `bin_m` of route) as needs on the
+    variance per PLACE_BIN_M, the places that needed none left out."""
+    out: dict[int, np.ndarray] = {}
+    for b, row in enumerate(rows):
+        f = np.asarray(row[:horizon], dtype=float)
+        if not len(f) or f.max() <= 1.0:
+            continue
+        need = np.square(np.pad(f, (0, horizon - len(f)), mode="edge"))
+        key = math.floor((b + 0.5) * bin_m / PLACE_BIN_M)
+        out[key] = np.maximum(out[key], need) if key in out else need
+    return out
 
 
 def _need(err: float, var_estimate: float, sigma_loc: float, sigma: float, scale: float) -> float:

@@ -73,6 +73,7 @@ from scipy.optimize import least_squares
 from common.messages import LocState, NominalModel
 from common.path import Path
 from services.controller.actuator import MIN_TURN_GAIN, ActuatorLag
+from services.controller.calibration import PLACE_BIN_M
 from services.controller.experience import ExperienceBuilder, Observation
 from services.controller.uncertainty import PriorStd
 
@@ -309,6 +310,7 @@ class TeachResiduals:
     turn_model: np.ndarray          # (m,) the heading change the model predicted over the period (rad)
     turn_route: np.ndarray          # (m,) the route's turn over the period at the model's speed (rad)
     route_curvature: np.ndarray     # (m,) the route's heading change per metre there (1/m)
+    along_m: np.ndarray | None = None   # (m,) where along the route each period began (None: not known)
 
     def __len__(self) -> int:
         return len(self.g)
@@ -361,7 +363,8 @@ def teach_residuals(rec: TeachRecorder, path: Path, lag: ActuatorLag) -> TeachRe
     as_array = lambda rows, n: np.array(rows, dtype=float).reshape(-1, n)   # noqa: E731
     curvature = _route_turn(path, np.array(along, dtype=float))
     return TeachResiduals(as_array(G, 3), as_array(U, 2), as_array(step, 3), as_array(decorrelated, 3),
-                          np.array(turn_model, dtype=float), curvature * np.array(speed) * rec.dt, curvature)
+                          np.array(turn_model, dtype=float), curvature * np.array(speed) * rec.dt, curvature,
+                          np.array(along, dtype=float))
 
 
 def _route_turn(path: Path, s: np.ndarray) -> np.ndarray:
@@ -431,10 +434,10 @@ def _body_variance(loc: LocState, cov: tuple[float, ...] | None) -> np.ndarray:
     return np.array([pos[0, 0], pos[1, 1], c[2, 2]])
 
 
-def _needed_scale(err: np.ndarray, model_var: np.ndarray, noise_var: np.ndarray) -> np.ndarray:
-    """Per error, the factor c on the model's standard deviation that puts it at 2.576
-    sqrt(c^2 model_var + noise_var), a Gaussian's 99th percentile (0 where the noise explains it)."""
-    need = np.maximum(np.square(err) / 2.576 ** 2 - noise_var, 0.0) / np.maximum(model_var, 1e-18)
+def _needed_scale(err: np.ndarray, model_var: np.ndarray, noise_var: np.ndarray, z: float = 2.576) -> np.ndarray:
+    """Per error, the factor c on the model's standard deviation that puts it at z sqrt(c^2 model_var +
+    noise_var), by default a Gaussian's 99th percentile (0 where the noise explains it)."""
+    need = np.maximum(np.square(err) / z ** 2 - noise_var, 0.0) / np.maximum(model_var, 1e-18)
     return np.sqrt(need)
 
 
@@ -464,6 +467,16 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _window_needs(res: TeachResiduals, var: np.ndarray, j: int, z: float) -> np.ndarray:
+    """Per window of j consecutive residuals (m - j + 1,), the factor on the prior's spread that puts the
+    window's summed lateral and heading residuals (the larger) at z sigma, the localizer's share aside."""
+    kernel = np.ones(j)
+    noise = res.noise_over(j)
+    need = [_needed_scale(np.convolve(res.g[:, i], kernel, "valid"), np.convolve(var[:, i], kernel, "valid"),
+                          noise[:, i], z) for i in (1, 2)]
+    return np.maximum(*need)
+
+
 def horizon_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZON) -> np.ndarray:
     """Per horizon step j, the factor on the prior's spread that held the teach pass's own errors: its
     residuals summed over j consecutive periods against the spread the prior gives them (independent per
@@ -474,11 +487,24 @@ def horizon_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZ
     var = prior.std(res.u) ** 2
     out = np.ones(steps)
     for j in range(1, min(steps, len(res)) + 1):
-        kernel = np.ones(j)
-        noise = res.noise_over(j)
-        z = [_needed_scale(np.convolve(res.g[:, i], kernel, "valid"), np.convolve(var[:, i], kernel, "valid"),
-                           noise[:, i]) for i in (1, 2)]
-        out[j - 1] = max(1.0, float(np.quantile(np.maximum(*z), 0.99)))
+        out[j - 1] = max(1.0, float(np.quantile(_window_needs(res, var, j, 2.576), 0.99)))
+    return out
+
+
+def place_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZON) -> np.ndarray:
+    """(bins, steps): per PLACE_BIN_M of the route from its start, per horizon step j, the factor on the
+    prior's spread that held at 3 sigma every window of j residuals begun there (at least 1). The teach
+    pass is the route's first pass: the online check remembers the errors of a place from one pass to the
+    next (calibration.py), and these seed that memory for trial 1. The global factors above forget a
+    rough patch once the check has seen WINDOW calm predictions; the place's do not."""
+    if res.along_m is None or not len(res):
+        return np.ones((0, steps))
+    var = prior.std(res.u) ** 2
+    bins = np.floor(np.maximum(res.along_m, 0.0) / PLACE_BIN_M).astype(int)
+    out = np.ones((int(bins.max()) + 1, steps))
+    for j in range(1, min(steps, len(res)) + 1):
+        need = _window_needs(res, var, j, 3.0)
+        np.maximum.at(out[:, j - 1], bins[:len(need)], need)
     return out
 
 
@@ -501,11 +527,11 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
             res = teach_residuals(rec, path, lag)
     if len(res) >= MIN_SAMPLES:
         prior, scale = scaled_prior(res, shape)
-        factors = horizon_factors(res, prior)
+        factors, places = horizon_factors(res, prior), place_factors(res, prior)
         if not res.step_var.any():
             notes.append("the localizer does not report its step covariance: its noise counts as the model's")
     else:
-        prior, scale, factors = shape, np.ones(3), np.ones(MAX_HORIZON)
+        prior, scale, factors, places = shape, np.ones(3), np.ones(MAX_HORIZON), np.ones((0, MAX_HORIZON))
         notes.append(f"only {len(res)} teach residuals (no teach pose estimates?): the default prior is kept")
     fit = lambda c, attr, default: getattr(c, attr) if c is not None else default   # noqa: E731
     return NominalModel(
@@ -521,4 +547,6 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         turn_gain=lag.turn_gain, turn_gain_std=turn.std,
         prior_std_base=prior.base, prior_std_per_mps=prior.per_mps,
         prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
-        spread_factors=[float(f) for f in factors], residual_samples=len(res), notes=notes)
+        spread_factors=[float(f) for f in factors], place_bin_m=PLACE_BIN_M,
+        place_spread_factors=[[round(float(f), 4) for f in row] for row in places],
+        residual_samples=len(res), notes=notes)

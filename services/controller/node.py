@@ -24,7 +24,7 @@ from common.path import Path
 from common.service import Control, Service, service_main
 from common.outbox_journal import OutboxJournal
 from common.store_client import ExperienceOutbox, WindowCache
-from services.controller.calibration import SpreadCalibration
+from services.controller.calibration import SpreadCalibration, teach_places
 from services.controller.config import ControllerConfig, StoreClientConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
@@ -154,14 +154,15 @@ class ControllerService(Service):
     def _calibration(self, path_id: str, model_tag: str, horizon: int) -> SpreadCalibration:
         """Where the online check of the predicted spread starts: where the last trial on this route under
         this model left it, else the teach pass's factors (identification.py), else nothing widened. The
-        teach factors measure the teach residuals against the identified prior: a hand-set prior starts
-        unwidened."""
+        teach factors (overall, and by place as the memory of places) measure the teach residuals against
+        the identified prior: a hand-set prior starts unwidened."""
         if (path_id, model_tag) in self.calibrations:
             return self.calibrations[(path_id, model_tag)].continued()
         model = self.nominal.of(path_id)
         if model is None or model.model_tag != model_tag or not self.cfg.nmpc.prior_is_identified:
             return SpreadCalibration(horizon)
-        return SpreadCalibration(horizon, np.square(model.spread_factors[:horizon]))
+        return SpreadCalibration(horizon, np.square(model.spread_factors[:horizon]),
+                                 places=teach_places(model.place_bin_m, model.place_spread_factors, horizon))
 
     def _use_model(self, tag: str) -> None:
         """The trial's nominal model names its experiences and selects the windows and fits learned from."""
