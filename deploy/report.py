@@ -315,6 +315,8 @@ def _model_section(model: dict, teach_learning: dict | None) -> list[str]:
             "a-priori std per period, base (m, m, rad)": model["prior_std_base"],
             "... per m/s": model["prior_std_per_mps"], "... per rad/s": model["prior_std_per_radps"],
             "scale of the default prior, from the teach residuals": model["prior_scale"],
+            "places where the teach pass needed a wider spread than its prior at 1 s ahead (route m: factor)":
+                _teach_places(model),
             "experiences from the teach pass, stored before trial 1 (GP fit version)":
                 (teach_learning["experiences_stored"], teach_learning["hyper_version"]) if teach_learning else "none"}
     rows.update({f"note {i + 1}": n for i, n in enumerate(model.get("notes") or [])})
@@ -324,6 +326,24 @@ def _model_section(model: dict, teach_learning: dict | None) -> list[str]:
             "robot turns at, against the localizer's heading (ground slip, understeer); the "
             "a-priori uncertainty scaled to the model's one-period residuals on that pass. Hand-set "
             "actuator_tau_s / turn_gain / prior_std_* in [controller.nmpc] override it.</p>", _kv_table(rows)]
+
+
+def _teach_places(model: dict, step: int = 10) -> str:
+    """The stretches of route whose teach residuals needed a factor above 1 on the prior's spread `step`
+    periods ahead (identification.place_factors), each with its largest factor."""
+    rows, bin_m = model.get("place_spread_factors") or [], model.get("place_bin_m", 2.0)
+    f = [r[min(step, len(r)) - 1] if r else 1.0 for r in rows]
+    out, b = [], 0
+    while b < len(f):
+        if f[b] <= 1.0:
+            b += 1
+            continue
+        e = b
+        while e + 1 < len(f) and f[e + 1] > 1.0:
+            e += 1
+        out.append(f"{b * bin_m:.0f}-{(e + 1) * bin_m:.0f}: {max(f[b:e + 1]):.2f}")
+        b = e + 1
+    return ", ".join(out) or "none"
 
 
 def _learning_off_notes(trials: list[dict]) -> list[str]:
