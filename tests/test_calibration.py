@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from common.path import Path
-from services.controller.calibration import (MARGIN, PLACE_BIN_M, WINDOW, Prediction, SpreadCalibration,
-                                             teach_places)
+from services.controller.calibration import (GROWTH, MARGIN, PLACE_BIN_M, WINDOW, Prediction, SpreadCalibration,
+                                             teach_places, teach_speeds)
 from services.controller.horizon_covariance import HorizonCovariance
 from services.controller.uncertainty import propagate, route_sigmas
 
@@ -118,13 +118,14 @@ def test_the_teach_factors_hold_until_a_window_is_seen_and_a_later_trial_continu
     assert len(nxt.recent[0]) == WINDOW
 
 
-def drive_pass(cal: SpreadCalibration, miss_at, step_m: float = 0.25, length_m: float = 100.0) -> None:
-    """One pass along a 100 m route, a one-step prediction every `step_m` made at its place with the
-    factor the calibration gives there; `miss_at(s)`: the real error in model sigmas (0.01 m)."""
+def drive_pass(cal: SpreadCalibration, miss_at, step_m: float = 0.25, length_m: float = 100.0,
+               v_mps: float = 1.0) -> None:
+    """One pass along a 100 m route at `v_mps`, a one-step prediction every `step_m` made at its place
+    with the factor the calibration gives there; `miss_at(s)`: the real error in model sigmas (0.01 m)."""
     for k, s in enumerate(np.arange(0.0, length_m, step_m)):
         kappa = float(cal.factors_at(s)[0])
         f = math.sqrt(kappa)
-        cal.predict(k, [Prediction(1, 0.0, 0.0, 0.01 * f, 0.01 * f, kappa, s_m=float(s))])
+        cal.predict(k, [Prediction(1, 0.0, 0.0, 0.01 * f, 0.01 * f, kappa, s_m=float(s), v_mps=v_mps)])
         cal.realize(k + 1, 0.01 * miss_at(s), 0.0, 0.0, 0.0)
 
 
@@ -163,6 +164,26 @@ def test_the_teach_passs_needs_by_place_widen_the_first_trial_there_until_it_has
     assert first.factors_at(60.0)[0] == 1.0
     drive_pass(first, lambda s: 0.0)
     assert first.continued().factors_at(41.0)[0] == 1.0
+
+
+def test_a_calm_pass_vouches_for_a_place_only_up_to_a_little_above_its_speed():
+    """The teach pass (1.0 m/s) needed twice the spread at 40-42 m. Trial 1 crosses it calmly at 1.4 m/s:
+    its needs replace the teach pass's, for plans up to GROWTH x 1.4 m/s; a faster plan there is widened
+    by the teach pass's needs again, as is any plan at a place the teach pass found rough but no trial
+    has passed faster. Places the teach pass found calm have no such limit."""
+    rows = [[1.0]] * 50
+    rows[20] = [2.0]
+    first = SpreadCalibration(horizon=1, places=teach_places(2.0, rows, 1), speeds=teach_speeds(2.0, [1.0] * 50))
+    b = first.beyond_at(41.0)
+    assert b.speed_mps == pytest.approx(GROWTH * 1.0) and b.factors[0] == pytest.approx(MARGIN * 4.0)
+    assert first.beyond_at(80.0).factors is None and first.beyond_at(80.0).speed_mps == math.inf
+    drive_pass(first, lambda s: 0.0, v_mps=1.4)
+    second = first.continued()
+    assert second.factors_at(41.0)[0] == 1.0                      # the calm pass replaced the teach's needs
+    b = second.beyond_at(41.0)
+    assert b.speed_mps == pytest.approx(GROWTH * 1.4) and b.factors[0] == pytest.approx(MARGIN * 4.0)
+    drive_pass(second, lambda s: 0.0, v_mps=1.2)                  # a slower pass lowers nothing
+    assert second.continued().beyond_at(41.0).speed_mps == pytest.approx(GROWTH * 1.4)
 
 
 def test_a_factor_learned_at_speed_widens_only_the_models_share_of_the_spread():

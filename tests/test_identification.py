@@ -288,8 +288,8 @@ def test_the_teach_passs_needs_are_kept_by_place():
     res = dataclasses.replace(residuals(G, U), along_m=along)
     prior = PriorStd()
     sigma = prior.base[2] + prior.per_mps[2]
-    places = place_factors(res, prior)
-    assert places.shape == (50, 30)
+    places, speeds = place_factors(res, prior)
+    assert places.shape == (50, 30) and np.all(speeds == 1.0)
     for j in (1, 10, 30):
         assert places[10, j - 1] == pytest.approx(max(1.0, math.sqrt(j) * d / (3 * sigma)))   # 20-22 m
     assert np.all(places[:8] == 1.0) and np.all(places[13:] == 1.0)    # windows from < 16 m, from >= 26 m

@@ -430,6 +430,26 @@ def test_robust_law_keeps_turn_rate_headroom_where_slowing_down_gives_it():
     assert ackermann.uncertainty.speed_scale == 1.0 and ackermann.v_mps > 0.95
 
 
+def test_a_rung_faster_than_the_places_passes_vouch_for_is_widened_by_the_first_passs_needs():
+    """Where the spread fits at full speed, factors of 3 for plans above 0.75 m/s (calibration.beyond_at)
+    put the robot on the fastest rung at or below 0.75 m/s, reported with the factors it was widened by
+    (none); a limit above the scheduled speed changes nothing."""
+    path = arc_path()
+    corridor = Corridor(path.s, 0.3, math.radians(20))
+    base = ctx_for(path, path.pose_at(20.0), v=1.0, corridor=corridor, prev_cmd=(1.0, 1.2 / 15.0))
+
+    def run(limit_mps):
+        ctx = dataclasses.replace(base, spread_beyond_mps=limit_mps, spread_factors_beyond=(3.0,) * 40)
+        return RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT).angular(ctx)
+
+    free = run(math.inf)
+    assert free.uncertainty.speed_scale == 1.0 and free.v_mps > 0.95
+    assert run(2.0).v_mps == pytest.approx(free.v_mps)
+    held = run(0.75)
+    assert held.uncertainty.speed_scale == 0.7 and held.v_mps <= 0.75
+    assert held.uncertainty.spread_kappa == ()
+
+
 def test_a_faster_rung_never_scales_a_crawls_turn_rate_corrections_up():
     """A warm start that crawled at 0.05 m/s with a 0.5 rad/s correction: the full-speed rung keeps that
     correction (scaled down, never up by 1.0 / 0.05, which made a turn of -5.8 rad/s out of a crawl's

@@ -43,6 +43,13 @@ distance); near a place, kappa_j is at least MARGIN times the largest need of th
 learned the place narrows the spread there one trial later. The teach pass is a route's first pass: its
 needs by place (identification.place_factors) start trial 1's memory, so that a rough patch the teach
 pass crossed is not entered unwidened after a calm stretch has emptied the window of the teach factors.
+
+What a pass met at a place holds near the speed it drove there: a calm pass at 1.4 m/s says nothing of
+2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
+patch outgrow a lagging turn. So each place also keeps the fastest speed any pass (the teach pass
+included) commanded there, and a plan faster than GROWTH times it is widened by the larger of the latest
+pass's needs and the teach pass's (`beyond_at`): speed at a place the teach pass found rough grows by at
+most GROWTH per trial over what has been driven there (thesis 4: speed raised with experience).
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
@@ -57,6 +64,7 @@ WINDOW = 150             # predictions per horizon step remembered (15 s at 10 H
 MARGIN = 1.1             # on the largest need: the next error is rarely exactly the worst seen
 MAX_SCALE = 400.0        # 20x the modelled standard deviation
 PLACE_BIN_M = 2.0        # route distance per place whose needs are remembered across trials
+GROWTH = 1.25            # a place's passes vouch for plans up to this times the fastest speed driven there
 
 
 @dataclass(frozen=True)
@@ -71,11 +79,21 @@ class Prediction:
     loc_sigma_lat_m: float = 0.0      # the localizer's share of the spread (not widened)
     loc_sigma_head_rad: float = 0.0
     s_m: float = math.nan             # where along the route it was made (NaN: remembered by no place)
+    v_mps: float = 0.0                # the speed commanded when it was made
+
+
+@dataclass(frozen=True)
+class Beyond:
+    """What a plan faster than a place's passes vouch for is widened by: from `speed_mps` on, `factors`
+    (kappa_j) instead of factors_at's."""
+    speed_mps: float = math.inf
+    factors: np.ndarray | None = None
 
 
 class SpreadCalibration:
     def __init__(self, horizon: int, scales: np.ndarray | None = None,
-                 recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None):
+                 recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None,
+                 speeds: dict[int, float] | None = None, first: dict[int, np.ndarray] | None = None):
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -86,13 +104,18 @@ class SpreadCalibration:
         self._pending: dict[int, list[Prediction]] = {}
         self.places_before = dict(places or {})      # place bin -> needs per step, of the latest pass
         self.places_now: dict[int, np.ndarray] = {}  # the same, of this trial
+        self.first = dict(first if first is not None else self.places_before)   # the teach pass's needs
+        self.speeds_before = dict(speeds or {})      # place bin -> the fastest speed commanded there
+        self.speeds_now: dict[int, float] = {}
 
     def continued(self) -> "SpreadCalibration":
         """A calibration for the next trial on the same route and model: this one's recent needs and
-        its needs by place (over the earlier passes' where it did not pass), no predictions pending,
-        counts from zero."""
+        its needs by place (over the earlier passes' where it did not pass), the fastest speeds of all
+        passes, no predictions pending, counts from zero."""
+        speeds = {b: max(self.speeds_before.get(b, 0.0), self.speeds_now.get(b, 0.0))
+                  for b in {*self.speeds_before, *self.speeds_now}}
         return SpreadCalibration(len(self.recent), self.scales, self.recent,
-                                 {**self.places_before, **self.places_now})
+                                 {**self.places_before, **self.places_now}, speeds, self.first)
 
     def factors_at(self, s_m: float | None) -> np.ndarray:
         """kappa_j for a prediction made at route distance `s_m` (None: the recent window's alone)."""
@@ -104,6 +127,22 @@ class SpreadCalibration:
             return self.scales.copy()
         worst = np.max(near, axis=0)
         return np.minimum(MAX_SCALE, np.maximum(self.scales, np.where(worst > 1.0, MARGIN * worst, 1.0)))
+
+    def beyond_at(self, s_m: float | None) -> Beyond:
+        """For a plan made at route distance `s_m`: from which speed it outruns what the passes over the
+        place vouch for (GROWTH times the slowest of the neighbouring places' fastest speeds), and the
+        factors then (the teach pass's needs there over factors_at's). Nothing where the teach pass
+        needed no widening."""
+        if s_m is None or not math.isfinite(s_m) or not self.first:
+            return Beyond()
+        b = math.floor(s_m / PLACE_BIN_M)
+        first = [self.first[i] for i in (b - 1, b, b + 1) if i in self.first]
+        if not first:
+            return Beyond()
+        seen = [self.speeds_before[i] for i in (b - 1, b, b + 1) if i in self.speeds_before]
+        worst = np.max(first, axis=0)
+        kappa = np.minimum(MAX_SCALE, np.maximum(self.factors_at(s_m), np.where(worst > 1.0, MARGIN * worst, 1.0)))
+        return Beyond(GROWTH * min(seen) if seen else math.inf, kappa)
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:
         """The law's predictions of step k made at `tick`: prediction j is for the estimate of tick + j."""
@@ -132,8 +171,10 @@ class SpreadCalibration:
         j = p.step - 1
         if not math.isfinite(p.s_m) or j >= len(self.scales):
             return
-        needs = self.places_now.setdefault(math.floor(p.s_m / PLACE_BIN_M), np.ones(len(self.scales)))
+        b = math.floor(p.s_m / PLACE_BIN_M)
+        needs = self.places_now.setdefault(b, np.ones(len(self.scales)))
         needs[j] = max(needs[j], need)
+        self.speeds_now[b] = max(self.speeds_now.get(b, 0.0), abs(p.v_mps))
 
     def _update(self, j: int, z: float, need: float) -> float:
         if j >= len(self.scales):
@@ -169,6 +210,15 @@ def teach_places(bin_m: float, rows: list[list[float]], horizon: int) -> dict[in
         need = np.square(np.pad(f, (0, horizon - len(f)), mode="edge"))
         key = math.floor((b + 0.5) * bin_m / PLACE_BIN_M)
         out[key] = np.maximum(out[key], need) if key in out else need
+    return out
+
+
+def teach_speeds(bin_m: float, speeds: list[float]) -> dict[int, float]:
+    """The teach pass's fastest commanded speed per PLACE_BIN_M (identification.place_factors' rows)."""
+    out: dict[int, float] = {}
+    for b, v in enumerate(speeds):
+        key = math.floor((b + 0.5) * bin_m / PLACE_BIN_M)
+        out[key] = max(out.get(key, 0.0), float(v))
     return out
 
 

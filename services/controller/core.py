@@ -34,7 +34,10 @@ class ControllerCore:
         if loc is not None and loc.has_pose:
             self._realize(loc)
         self.kappa = self.calibration.factors_at(self.s_m)
-        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors)
+        beyond = self.calibration.beyond_at(self.s_m)
+        factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
+        decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors,
+                                     (beyond.speed_mps, factors))
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         if decision.state == "stopped":
             # a robot held at rest after a safety stop shows nothing of how it moves, and how many such steps
@@ -63,7 +66,8 @@ class ControllerCore:
         unc = law.uncertainty if law is not None else None
         if unc is None or not unc.horizon_sigma_lat_m or law.predicted is None or d.state != "tracking":
             return
-        scales, hint, predictions = self.kappa, d.vertex, []
+        scales = np.asarray(unc.spread_kappa) if unc.spread_kappa else self.kappa
+        hint, predictions = d.vertex, []
         for j, x in enumerate(np.asarray(law.predicted)):
             pr = self.path.project(x, hint=hint)
             hint = pr.vertex
@@ -71,5 +75,5 @@ class ControllerCore:
                 if j < len(unc.horizon_loc_sigma_lat_m) else (0.0, 0.0)
             predictions.append(Prediction(j + 1, pr.lateral_m, pr.heading_rad, unc.horizon_sigma_lat_m[j],
                                           unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0,
-                                          *loc, s_m=d.distance_m))
+                                          *loc, s_m=d.distance_m, v_mps=d.v_mps))
         self.calibration.predict(tick, predictions)

@@ -491,21 +491,24 @@ def horizon_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZ
     return out
 
 
-def place_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZON) -> np.ndarray:
+def place_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZON) -> tuple[np.ndarray, np.ndarray]:
     """(bins, steps): per PLACE_BIN_M of the route from its start, per horizon step j, the factor on the
-    prior's spread that held at 3 sigma every window of j residuals begun there (at least 1). The teach
-    pass is the route's first pass: the online check remembers the errors of a place from one pass to the
-    next (calibration.py), and these seed that memory for trial 1. The global factors above forget a
-    rough patch once the check has seen WINDOW calm predictions; the place's do not."""
+    prior's spread that held at 3 sigma every window of j residuals begun there (at least 1); and (bins,)
+    the fastest speed commanded there. The teach pass is the route's first pass: the online check
+    remembers the errors of a place from one pass to the next (calibration.py), and these seed that
+    memory for trial 1. The global factors above forget a rough patch once the check has seen WINDOW calm
+    predictions; the place's do not."""
     if res.along_m is None or not len(res):
-        return np.ones((0, steps))
+        return np.ones((0, steps)), np.zeros(0)
     var = prior.std(res.u) ** 2
     bins = np.floor(np.maximum(res.along_m, 0.0) / PLACE_BIN_M).astype(int)
     out = np.ones((int(bins.max()) + 1, steps))
     for j in range(1, min(steps, len(res)) + 1):
         need = _window_needs(res, var, j, 3.0)
         np.maximum.at(out[:, j - 1], bins[:len(need)], need)
-    return out
+    speed = np.zeros(len(out))
+    np.maximum.at(speed, bins, np.abs(res.u[:, 0]))
+    return out, speed
 
 
 def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd(),
@@ -527,11 +530,12 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
             res = teach_residuals(rec, path, lag)
     if len(res) >= MIN_SAMPLES:
         prior, scale = scaled_prior(res, shape)
-        factors, places = horizon_factors(res, prior), place_factors(res, prior)
+        factors, (places, place_speeds) = horizon_factors(res, prior), place_factors(res, prior)
         if not res.step_var.any():
             notes.append("the localizer does not report its step covariance: its noise counts as the model's")
     else:
-        prior, scale, factors, places = shape, np.ones(3), np.ones(MAX_HORIZON), np.ones((0, MAX_HORIZON))
+        prior, scale, factors = shape, np.ones(3), np.ones(MAX_HORIZON)
+        places, place_speeds = np.ones((0, MAX_HORIZON)), np.zeros(0)
         notes.append(f"only {len(res)} teach residuals (no teach pose estimates?): the default prior is kept")
     fit = lambda c, attr, default: getattr(c, attr) if c is not None else default   # noqa: E731
     return NominalModel(
@@ -549,4 +553,5 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         prior_std_per_radps=prior.per_radps, prior_scale=tuple(float(s) for s in scale),
         spread_factors=[float(f) for f in factors], place_bin_m=PLACE_BIN_M,
         place_spread_factors=[[round(float(f), 4) for f in row] for row in places],
+        place_speed_mps=[round(float(v), 4) for v in place_speeds],
         residual_samples=len(res), notes=notes)

@@ -44,6 +44,10 @@ class StepContext:
     # per horizon step, the factor on the predicted standard deviations from the online check of the
     # predicted spread (calibration.py); empty: none
     spread_factors: tuple[float, ...] = ()
+    # ... and those for a plan faster than the passes over this place vouch for, from which speed
+    # (calibration.Beyond; empty: the same)
+    spread_factors_beyond: tuple[float, ...] = ()
+    spread_beyond_mps: float = float("inf")
     loc_age_s: float = 0.0               # how old `pose` is (now - its capture): what the feedback lags by
 
 
@@ -75,6 +79,9 @@ class UncertaintyReport:
     # the localizer's share of them (its covariance carried along the plan; the calibration leaves it)
     horizon_loc_sigma_lat_m: tuple[float, ...] = ()
     horizon_loc_sigma_head_rad: tuple[float, ...] = ()
+    # the calibration's factors on the variance the spreads were widened by, where not the step's
+    # spread_factors (RC: a rung faster than the place's passes vouch for; empty: those)
+    spread_kappa: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)

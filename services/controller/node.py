@@ -24,7 +24,7 @@ from common.path import Path
 from common.service import Control, Service, service_main
 from common.outbox_journal import OutboxJournal
 from common.store_client import ExperienceOutbox, WindowCache
-from services.controller.calibration import SpreadCalibration, teach_places
+from services.controller.calibration import SpreadCalibration, teach_places, teach_speeds
 from services.controller.config import ControllerConfig, StoreClientConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
@@ -162,7 +162,8 @@ class ControllerService(Service):
         if model is None or model.model_tag != model_tag or not self.cfg.nmpc.prior_is_identified:
             return SpreadCalibration(horizon)
         return SpreadCalibration(horizon, np.square(model.spread_factors[:horizon]),
-                                 places=teach_places(model.place_bin_m, model.place_spread_factors, horizon))
+                                 places=teach_places(model.place_bin_m, model.place_spread_factors, horizon),
+                                 speeds=teach_speeds(model.place_bin_m, model.place_speed_mps))
 
     def _use_model(self, tag: str) -> None:
         """The trial's nominal model names its experiences and selects the windows and fits learned from."""

@@ -52,6 +52,11 @@ def _horizon_sigmas(sig: np.ndarray, loc: np.ndarray) -> dict:
             "horizon_loc_sigma_head_rad": tuple(float(x) for x in loc[:, 2])}
 
 
+def _kappa(cov: HorizonCovariance) -> tuple[float, ...]:
+    """The calibration's factors on the variance `cov` widens by (empty: none)."""
+    return () if cov.factors is None else tuple(float(f * f) for f in cov.factors)
+
+
 def _estimate_sigmas(ctx: StepContext) -> tuple[float, float]:
     """The estimate's 1-sigma across the route and in heading. An estimate outside the corridor by less
     cannot tell a robot at the edge from one just inside: the law then steers it back (its plan pays the
@@ -162,6 +167,8 @@ class RCLBNMPCLaw:
         A = np.empty((base.K, 9))
         rung = self._speed_cap(ctx, problem, v, w, cov, cap, A) if self.alpha > 0 else None
         if rung is not None:
+            cov = rung.cov
+        if rung is not None:
             problem, v, w = rung.problem, rung.v, rung.w
             v_max = np.maximum(np.minimum(v_max, rung.scale * base.v), s.v_min_mps)
         if gp is not None and s.crab_reference:    # the learned crab at the speeds this step starts from
@@ -223,8 +230,11 @@ class RCLBNMPCLaw:
     def _speed_cap(self, ctx: StepContext, problem: HorizonProblem, v: np.ndarray, w: np.ndarray,
                    cov: HorizonCovariance, cap: np.ndarray, A: np.ndarray) -> Rung:
         last = self._rung if self.last_plan is not None else None
+        beyond = None
+        if ctx.spread_factors_beyond and math.isfinite(ctx.spread_beyond_mps):
+            beyond = (ctx.spread_beyond_mps, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond)))
         # the drive's turn-rate limit at any speed (its curvature limit, if any, left out: speed_ladder.py)
-        rung = fastest_fitting_rung(problem, v, w, cov, cap, self.alpha, ctx.w_limit_at(math.inf), last, A)
+        rung = fastest_fitting_rung(problem, v, w, cov, cap, self.alpha, ctx.w_limit_at(math.inf), last, A, beyond)
         self._rung = rung.index
         return rung
 
@@ -274,4 +284,5 @@ class RCLBNMPCLaw:
                          solve=SolveReport(cost, result.iterations, result.evaluations, result.status, learned),
                          uncertainty=UncertaintyReport(float(sig[:, 1].max()), float(sig[:, 2].max()),
                                                        speed_scale=1.0 if rung is None else rung.scale,
-                                                       violation=it.violation, **_horizon_sigmas(sig, loc)))
+                                                       violation=it.violation, **_horizon_sigmas(sig, loc),
+                                                       spread_kappa=_kappa(cov)))

@@ -7,7 +7,8 @@ the route at its speeds (with last step's corrections, scaled) keep some headroo
 turn-rate limit: a plan pinned at the limit cannot correct anything. Only the rate limit counts, the one
 slowing down relieves; an Ackermann's curvature limit binds at every speed alike (the SQP keeps to it).
 The ladder climbs one rung per step at most and descends as far as needed; the SQP then fine-tunes
-below the cap. Without it the band is infeasible at the scheduled speed, the slack price dominates the
+below the cap. A rung faster than the passes over the place vouch for is widened by the teach pass's
+needs there (calibration.beyond_at): its covariance model is the rung's own. Without it the band is infeasible at the scheduled speed, the slack price dominates the
 cost and the plan flips between steps.
 """
 from __future__ import annotations
@@ -35,6 +36,7 @@ class Rung:
     sig_model: np.ndarray   # (K, 3) route-frame standard deviations of x_1..x_K, as the model gives them
     sig: np.ndarray         # (K, 3) the same widened by the online calibration (what the corridor must hold)
     sig_loc: np.ndarray     # (K, 3) the localizer's share of them (never widened)
+    cov: HorizonCovariance  # the covariance model it was tested with
 
     @property
     def scale(self) -> float:
@@ -42,10 +44,12 @@ class Rung:
 
 
 def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
-              a_out: np.ndarray, v_min: float) -> Rung:
+              a_out: np.ndarray, v_min: float, beyond: tuple[float, HorizonCovariance] | None = None) -> Rung:
     """The rung's own profile, tested at its own speeds: a rung "fitted" at the warm start's slower
     speeds would be driven at the rung's and fall back next step (two-step chatter)."""
     vk = np.clip(SPEED_LADDER[k] * base.v, v_min, None)
+    if beyond is not None and float(vk.max()) > beyond[0]:
+        cov = beyond[1]
     p = base.following(vk)
     # same path: corrections scaled down with speed, never up (a correction made at a crawl is a turn on
     # the spot, which no faster rung could drive)
@@ -54,18 +58,19 @@ def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: H
     X = p.rollout(wk, with_jac=True, v=vk, with_v_jac=True, a_out=a_out)[0]
     Sig, sig = cov.along(p, X, a_out, vk, wk)
     loc = cov.localizer_part(X, p.ref.direction_rad[1:])
-    return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig, loc), loc)
+    return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig, loc), loc, cov)
 
 
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
                          cap: np.ndarray, alpha: float, w_rate_cap: float, last_index: int | None,
-                         a_out: np.ndarray) -> Rung:
+                         a_out: np.ndarray, beyond: tuple[float, HorizonCovariance] | None = None) -> Rung:
     """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits
     (or the bottom rung). `cap` (K, 3): the most alpha * sigma may take of the corridor; `w_rate_cap`:
-    the drive's turn-rate limit at any speed. `a_out` (K, 9) receives the chosen rung's GP inputs."""
+    the drive's turn-rate limit at any speed. `a_out` (K, 9) receives the chosen rung's GP inputs.
+    `beyond`: the speed above which a rung is tested with the other covariance model."""
     k = 0 if last_index is None else max(last_index - 1, 0)
     while True:
-        rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps)
+        rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps, beyond)
         t = alpha * rung.sig[1:]
         fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])
                     and np.all(np.abs(rung.w) <= TURN_HEADROOM * w_rate_cap))
