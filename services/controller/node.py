@@ -407,7 +407,8 @@ class ControllerService(Service):
             pred_y_m=pred[:, 1].tolist(), pred_theta_rad=pred[:, 2].tolist(),
             sigma_lat_m=unc.sigma_lat_max_m if unc else 0.0, sigma_head_rad=unc.sigma_head_max_rad if unc else 0.0,
             solver_status=law.solve.status if law is not None and law.solve is not None else "",
-            spread_factors=list(self.core.spread_factors) if self.core is not None else [],
+            spread_factors=[math.sqrt(k) for k in unc.spread_kappa] if unc and unc.spread_kappa else
+            list(self.core.spread_factors) if self.core is not None else [],
             pred_sigma_lat_m=list(unc.horizon_sigma_lat_m) if unc else [],
             pred_sigma_head_rad=list(unc.horizon_sigma_head_rad) if unc else [],
             learning_off_since_s=self.learning_off_since_s, learning_note=self.learning_note,
