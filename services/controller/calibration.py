@@ -125,8 +125,7 @@ class SpreadCalibration:
         near = [self.places_before[i] for i in (b - 1, b, b + 1) if i in self.places_before]
         if not near:
             return self.scales.copy()
-        worst = np.max(near, axis=0)
-        return np.minimum(MAX_SCALE, np.maximum(self.scales, np.where(worst > 1.0, MARGIN * worst, 1.0)))
+        return _widened(self.scales, np.max(near, axis=0))
 
     def beyond_at(self, s_m: float | None) -> Beyond:
         """For a plan made at route distance `s_m`: from which speed it outruns what the passes over the
@@ -140,8 +139,7 @@ class SpreadCalibration:
         if not first:
             return Beyond()
         seen = [self.speeds_before[i] for i in (b - 1, b, b + 1) if i in self.speeds_before]
-        worst = np.max(first, axis=0)
-        kappa = np.minimum(MAX_SCALE, np.maximum(self.factors_at(s_m), np.where(worst > 1.0, MARGIN * worst, 1.0)))
+        kappa = _widened(self.factors_at(s_m), np.max(first, axis=0))
         return Beyond(GROWTH * min(seen) if seen else math.inf, kappa)
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:
@@ -220,6 +218,11 @@ def teach_speeds(bin_m: float, speeds: list[float]) -> dict[int, float]:
         key = math.floor((b + 0.5) * bin_m / PLACE_BIN_M)
         out[key] = max(out.get(key, 0.0), float(v))
     return out
+
+
+def _widened(kappa: np.ndarray, worst: np.ndarray) -> np.ndarray:
+    """`kappa` widened to MARGIN times a place's largest needs `worst` where they are above 1."""
+    return np.minimum(MAX_SCALE, np.maximum(kappa, np.where(worst > 1.0, MARGIN * worst, 1.0)))
 
 
 def _need(err: float, var_estimate: float, sigma_loc: float, sigma: float, scale: float) -> float:
