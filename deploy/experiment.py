@@ -275,6 +275,14 @@ class Experiment:
                 break
             elif kind == "alive" and not msg[1] and msg[0] in ROBOT_SERVICES:
                 raise ExperimentError(f"{msg[0]} disappeared during teach")
+        # the last ticks' truth may reach the runner after the end event (each key has its own subscriber):
+        # the taught route must not depend on which arrived first
+        late: list[TruthPose] = []
+        self._await_late(0, "truth", late, lambda: (late or [last])[-1] is not None
+                         and (late or [last])[-1].stamp_s >= self.teach_sim_s - 1e-6)
+        for msg in late:
+            ticks.append(msg.tick)
+            truth_route.add((msg.x_world_m, msg.y_world_m, msg.theta_world_rad))
         if missed := _missed_ticks(ticks):
             # every later error figure is measured against this route: say it is short of samples
             log.warning("teach: %d truth samples did not reach the runner (%s); the truth route is built "
@@ -448,7 +456,7 @@ class Experiment:
         """The bridge's truth of its last tick may reach the runner after its end event (each key has its
         own subscriber): wait for it (the event carries its stamp), so the window a summary counts
         (TrialRecord.stepped_status) does not depend on the wall clock."""
-        self._await_late(rec, "truth", rec.truth, lambda: bool(rec.truth) and rec.truth[-1].stamp_s >= end_stamp_s - 1e-6)
+        self._await_late(rec.trial, "truth", rec.truth, lambda: bool(rec.truth) and rec.truth[-1].stamp_s >= end_stamp_s - 1e-6)
 
     def _late_statuses(self, rec: TrialRecord) -> None:
         """The controller's answers to the last stepped ticks may reach the runner after the bridge's end
@@ -456,10 +464,10 @@ class Experiment:
         if not rec.truth:
             return
         last = rec.truth[-1].tick
-        self._await_late(rec, "status", rec.status, lambda: any(s.tick >= last - 1 for s in rec.status[-3:]))
+        self._await_late(rec.trial, "status", rec.status, lambda: any(s.tick >= last - 1 for s in rec.status[-3:]))
 
-    def _await_late(self, rec: TrialRecord, kind_wanted: str, into: list, arrived: Callable[[], bool]) -> None:
-        """Take this trial's `kind_wanted` messages from the events into `into` until `arrived()`. In
+    def _await_late(self, trial: int, kind_wanted: str, into: list, arrived: Callable[[], bool]) -> None:
+        """Take trial `trial`'s `kind_wanted` messages from the events into `into` until `arrived()`. In
         lockstep they are never dropped, so the wait is bounded only against a service that died (a
         loaded machine can hold them back more than a second); in realtime they may have been: 1 s."""
         wait_s = LATE_STATUS_LOCKSTEP_S if self.sc.sim.clock == "lockstep" else 1.0
@@ -469,7 +477,7 @@ class Experiment:
                 kind, msg = self.events.get(timeout=0.1)
             except queue.Empty:
                 continue
-            if kind == kind_wanted and msg.trial == rec.trial:
+            if kind == kind_wanted and msg.trial == trial:
                 into.append(msg)
             else:
                 others.append((kind, msg))
