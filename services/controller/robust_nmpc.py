@@ -167,9 +167,7 @@ class RCLBNMPCLaw:
         A = np.empty((base.K, 9))
         rung = self._speed_cap(ctx, problem, v, w, cov, cap, A) if self.alpha > 0 else None
         if rung is not None:
-            cov = rung.cov
-        if rung is not None:
-            problem, v, w = rung.problem, rung.v, rung.w
+            problem, v, w, cov = rung.problem, rung.v, rung.w, rung.cov
             v_max = np.maximum(np.minimum(v_max, rung.scale * base.v), s.v_min_mps)
         if gp is not None and s.crab_reference:    # the learned crab at the speeds this step starts from
             ref = problem.ref

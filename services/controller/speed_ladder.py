@@ -7,9 +7,9 @@ the route at its speeds (with last step's corrections, scaled) keep some headroo
 turn-rate limit: a plan pinned at the limit cannot correct anything. Only the rate limit counts, the one
 slowing down relieves; an Ackermann's curvature limit binds at every speed alike (the SQP keeps to it).
 The ladder climbs one rung per step at most and descends as far as needed; the SQP then fine-tunes
-below the cap. A rung faster than the passes over the place vouch for is widened by the teach pass's
-needs there (calibration.beyond_at): its covariance model is the rung's own. Without it the band is infeasible at the scheduled speed, the slack price dominates the
-cost and the plan flips between steps.
+below the cap. Without it the band is infeasible at the scheduled speed, the slack price dominates the
+cost and the plan flips between steps. A rung faster than the passes over the place vouch for is
+widened by the teach pass's needs there (calibration.beyond_at): its covariance model is the rung's own.
 """
 from __future__ import annotations
 
