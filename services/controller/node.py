@@ -162,7 +162,7 @@ class ControllerService(Service):
         if model is None or model.model_tag != model_tag or not self.cfg.nmpc.prior_is_identified:
             return SpreadCalibration(horizon)
         return SpreadCalibration(horizon, np.square(model.spread_factors[:horizon]),
-                                 places=teach_places(model.place_bin_m, model.place_spread_factors, horizon),
+                                 first=teach_places(model.place_bin_m, model.place_spread_factors, horizon),
                                  speeds=teach_speeds(model.place_bin_m, model.place_speed_mps))
 
     def _use_model(self, tag: str) -> None:
