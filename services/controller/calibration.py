@@ -37,30 +37,20 @@ floor until a step has seen WINDOW predictions; a later trial starts from the la
 The errors of a place repeat (a rough patch, a slope: the premise of learning from experience), and a
 recent window forgets them by the time the robot is back: a trial that ended on a calm stretch would
 enter the next trial's rough patch, at a speed the calm window allows, with its spread unwidened. So
-each place (PLACE_BIN_M bins of the route's distance, where the prediction was made) also keeps, per
-step and for lateral and heading apart, the variance its predictions missed beyond the model's own,
-
-    missing = max(0, err^2 / 9 - sigma_estimate^2 - sigma_loc^2 - sigma_model^2),
-
-and a plan made near the place (the neighbouring bins included) adds MARGIN times the largest of the
-latest pass to its predicted variance. Added, not multiplied: the model's share of a plan changes more
-from one pass to the next than the place's disturbance does. Trial 4 of a Grizzly run missed 8 model
-sigmas at 1.65 m/s where its learned model was sure of itself (a need of 57); multiplied into trial 5's
-plans, whose slow rungs (where the learned model had no data) had 2.6x its spread, that need left no
-speed whose spread fitted the corridor. The latest pass replaces an earlier one's, so a model that has
+each need is also kept by the place the prediction was made at (PLACE_BIN_M bins of the route's
+distance); near a place, kappa_j is at least MARGIN times the largest need of the latest pass over it
+(the neighbouring bins included). The latest pass replaces an earlier one's needs, so a model that has
 learned the place narrows the spread there one trial later. The teach pass is a route's first pass: its
-needs by place (identification.place_factors, factors on the prior's spread, which is what trial 1
-mostly plans with) widen trial 1's plans near a place no trial has passed yet, so that a rough patch the
-teach pass crossed is not entered unwidened after a calm stretch has emptied the window of the teach
-factors.
+needs by place (identification.place_factors) start trial 1's memory, so that a rough patch the teach
+pass crossed is not entered unwidened after a calm stretch has emptied the window of the teach factors.
 
 What a pass met at a place holds near the speed it drove there: a calm pass at 1.4 m/s says nothing of
 2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
 patch outgrow a lagging turn. So each place also keeps the fastest speed any pass (the teach pass
-included) commanded there, and a plan faster than GROWTH times it is widened by the teach pass's needs
-there as well (`beyond_at`): speed at a place the teach pass found rough grows by at
+included) commanded there, and a plan faster than GROWTH times it is widened by the larger of the latest
+pass's needs and the teach pass's (`beyond_at`): speed at a place the teach pass found rough grows by at
 most GROWTH per trial over what has been driven there (thesis 4: speed raised with experience).
-Pure: inputs in, factors and variances out.
+Pure: inputs in, factors out.
 """
 from __future__ import annotations
 
@@ -90,8 +80,6 @@ class Prediction:
     loc_sigma_head_rad: float = 0.0
     s_m: float = math.nan             # where along the route it was made (NaN: remembered by no place)
     v_mps: float = 0.0                # the speed commanded when it was made
-    extra_lat_m2: float = 0.0         # the variance the memory of places added to it (not times `scale`)
-    extra_head_rad2: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -105,13 +93,7 @@ class Beyond:
 class SpreadCalibration:
     def __init__(self, horizon: int, scales: np.ndarray | None = None,
                  recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None,
-                 speeds: dict[int, float] | None = None, first: dict[int, np.ndarray] | None = None,
-                 brake_mps2: float = math.inf):
-        """`scales`: the teach pass's factors per step (a floor until WINDOW predictions); `recent`: the
-        last trial's needs per step; `places`: place bin -> (steps, 2) variances (lateral m^2, heading
-        rad^2) the latest pass missed there; `speeds`: place bin -> the fastest speed commanded there;
-        `first`: place bin -> (steps,) the teach pass's needs (factors on the variance); `brake_mps2`: the
-        deceleration the drive is held to (identified on the teach pass; inf: none seen)."""
+                 speeds: dict[int, float] | None = None, first: dict[int, np.ndarray] | None = None):
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -120,12 +102,11 @@ class SpreadCalibration:
         self.checked = np.zeros(horizon, dtype=int)
         self.outside = np.zeros(horizon, dtype=int)
         self._pending: dict[int, list[Prediction]] = {}
-        self.places_before = dict(places or {})      # place bin -> missing variances, of the latest pass
+        self.places_before = dict(places or {})      # place bin -> needs per step, of the latest pass
         self.places_now: dict[int, np.ndarray] = {}  # the same, of this trial
-        self.first = dict(first or {})               # place bin -> the teach pass's needs per step
+        self.first = dict(first if first is not None else self.places_before)   # the teach pass's needs
         self.speeds_before = dict(speeds or {})      # place bin -> the fastest speed commanded there
         self.speeds_now: dict[int, float] = {}
-        self.brake_mps2 = brake_mps2
 
     def continued(self) -> "SpreadCalibration":
         """A calibration for the next trial on the same route and model: this one's recent needs and
@@ -134,47 +115,31 @@ class SpreadCalibration:
         speeds = {b: max(self.speeds_before.get(b, 0.0), self.speeds_now.get(b, 0.0))
                   for b in {*self.speeds_before, *self.speeds_now}}
         return SpreadCalibration(len(self.recent), self.scales, self.recent,
-                                 {**self.places_before, **self.places_now}, speeds, self.first, self.brake_mps2)
+                                 {**self.places_before, **self.places_now}, speeds, self.first)
 
-    def _near(self, s_m: float, v_mps: float) -> range:
-        """The place bins a plan made at `s_m` at speed `v_mps` must already allow for: the neighbouring
-        ones, and those within the distance the robot needs to slow down (v^2 / 2a) beyond: a place the
-        ladder first saw one bin ahead would be met at the speed of the bins before it."""
-        reach = v_mps * v_mps / (2.0 * self.brake_mps2) if self.brake_mps2 > 0.0 else 0.0
-        return range(math.floor(s_m / PLACE_BIN_M) - 1, math.floor((s_m + reach) / PLACE_BIN_M) + 2)
-
-    def factors_at(self, s_m: float | None, v_mps: float = 0.0) -> np.ndarray:
-        """kappa_j for a prediction made at route distance `s_m` at speed `v_mps` (None: the recent
-        window's alone): the recent window's, widened by the teach pass's needs at the places near (_near)
-        that no trial has passed."""
-        if s_m is None or not math.isfinite(s_m) or not self.first:
-            return self.scales.copy()
-        teach = [self.first[i] for i in self._near(s_m, v_mps) if i in self.first and i not in self.places_before]
-        return _widened(self.scales, np.max(teach, axis=0)) if teach else self.scales.copy()
-
-    def extras_at(self, s_m: float | None, v_mps: float = 0.0) -> np.ndarray:
-        """(steps, 2): the variance (lateral m^2, heading rad^2) added to each step's prediction made at
-        route distance `s_m` at speed `v_mps`: MARGIN times the most the latest pass missed by at the
-        places near (_near)."""
-        K = len(self.scales)
+    def factors_at(self, s_m: float | None) -> np.ndarray:
+        """kappa_j for a prediction made at route distance `s_m` (None: the recent window's alone)."""
         if s_m is None or not math.isfinite(s_m) or not self.places_before:
-            return np.zeros((K, 2))
-        near = [self.places_before[i] for i in self._near(s_m, v_mps) if i in self.places_before]
-        return MARGIN * np.max(near, axis=0) if near else np.zeros((K, 2))
+            return self.scales.copy()
+        b = math.floor(s_m / PLACE_BIN_M)
+        near = [self.places_before[i] for i in (b - 1, b, b + 1) if i in self.places_before]
+        if not near:
+            return self.scales.copy()
+        return _widened(self.scales, np.max(near, axis=0))
 
-    def beyond_at(self, s_m: float | None, v_mps: float = 0.0) -> Beyond:
-        """For a plan made at route distance `s_m` at speed `v_mps`: from which speed it outruns what the
-        passes over the places near (_near) vouch for (GROWTH times the slowest of their fastest speeds),
-        and the factors then (the teach pass's needs there over factors_at's). Nothing where the teach
-        pass needed no widening."""
+    def beyond_at(self, s_m: float | None) -> Beyond:
+        """For a plan made at route distance `s_m`: from which speed it outruns what the passes over the
+        place vouch for (GROWTH times the slowest of the neighbouring places' fastest speeds), and the
+        factors then (the teach pass's needs there over factors_at's). Nothing where the teach pass
+        needed no widening."""
         if s_m is None or not math.isfinite(s_m) or not self.first:
             return Beyond()
-        near = self._near(s_m, v_mps)
-        first = [self.first[i] for i in near if i in self.first]
+        b = math.floor(s_m / PLACE_BIN_M)
+        first = [self.first[i] for i in (b - 1, b, b + 1) if i in self.first]
         if not first:
             return Beyond()
-        seen = [self.speeds_before[i] for i in near if i in self.speeds_before]
-        kappa = _widened(self.factors_at(s_m, v_mps), np.max(first, axis=0))
+        seen = [self.speeds_before[i] for i in (b - 1, b, b + 1) if i in self.speeds_before]
+        kappa = _widened(self.factors_at(s_m), np.max(first, axis=0))
         return Beyond(GROWTH * min(seen) if seen else math.inf, kappa)
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:
@@ -194,19 +159,19 @@ class SpreadCalibration:
             h = math.remainder(heading_rad - p.heading_rad, 2 * math.pi)
             z_lat = d / math.sqrt(p.sigma_lat_m ** 2 + var_lat_m2 + 1e-12)
             z_head = h / math.sqrt(p.sigma_head_rad ** 2 + var_head_rad2 + 1e-12)
-            lat = _Realized(d, var_lat_m2, p.loc_sigma_lat_m, p.sigma_lat_m, p.extra_lat_m2, p.scale)
-            head = _Realized(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.extra_head_rad2, p.scale)
-            out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), max(lat.need, head.need)))
-            self._remember(p, (lat.missing, head.missing))
+            need = max(_need(d, var_lat_m2, p.loc_sigma_lat_m, p.sigma_lat_m, p.scale),
+                       _need(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale))
+            out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
+            self._remember(p, need)
         return out
 
-    def _remember(self, p: Prediction, missing: tuple[float, float]) -> None:
+    def _remember(self, p: Prediction, need: float) -> None:
         j = p.step - 1
         if not math.isfinite(p.s_m) or j >= len(self.scales):
             return
         b = math.floor(p.s_m / PLACE_BIN_M)
-        needs = self.places_now.setdefault(b, np.zeros((len(self.scales), 2)))
-        needs[j] = np.maximum(needs[j], missing)
+        needs = self.places_now.setdefault(b, np.ones(len(self.scales)))
+        needs[j] = max(needs[j], need)
         self.speeds_now[b] = max(self.speeds_now.get(b, 0.0), abs(p.v_mps))
 
     def _update(self, j: int, z: float, need: float) -> float:
@@ -260,39 +225,13 @@ def _widened(kappa: np.ndarray, worst: np.ndarray) -> np.ndarray:
     return np.minimum(MAX_SCALE, np.maximum(kappa, np.where(worst > 1.0, MARGIN * worst, 1.0)))
 
 
-@dataclass(frozen=True)
-class _Realized:
-    """One channel (lateral or heading) of a realized prediction: its error `err` against the estimate's
-    variance, and the predicted sigma with its localizer's share, the place's added variance and the
-    factor `scale` it was widened by."""
-    err: float
-    var_estimate: float
-    sigma_loc: float
-    sigma: float
-    extra: float
-    scale: float
+def _need(err: float, var_estimate: float, sigma_loc: float, sigma: float, scale: float) -> float:
+    """The factor on the model's share of the variance that puts `err` on the 3-sigma boundary (at least
+    1); `sigma` was predicted with that share times `scale`."""
+    loc2 = min(sigma_loc * sigma_loc, sigma * sigma)
+    return max(1.0, (err * err / 9.0 - var_estimate - loc2) / max(_model_share(sigma_loc, sigma, scale), 1e-18))
 
-    @property
-    def _loc2(self) -> float:
-        return min(self.sigma_loc ** 2, self.sigma ** 2)
 
-    @property
-    def share(self) -> float:
-        """The model's share of the predicted variance before it was widened."""
-        return max(self.sigma ** 2 - self._loc2 - self.extra, 0.0) / max(self.scale, 1e-9)
-
-    @property
-    def _beyond(self) -> float:
-        """What the 3-sigma boundary through `err` holds beyond the estimate's and the localizer's variance."""
-        return self.err * self.err / 9.0 - self.var_estimate - self._loc2
-
-    @property
-    def need(self) -> float:
-        """The factor on the model's share that, with the place's added variance, puts `err` on the
-        3-sigma boundary (at least 1)."""
-        return max(1.0, (self._beyond - self.extra) / max(self.share, 1e-18))
-
-    @property
-    def missing(self) -> float:
-        """The variance beyond the model's own share that puts `err` on the 3-sigma boundary (at least 0)."""
-        return max(0.0, self._beyond - self.share)
+def _model_share(sigma_loc: float, sigma: float, scale: float) -> float:
+    """The model's share of a predicted variance before it was widened by `scale`."""
+    return (sigma * sigma - min(sigma_loc * sigma_loc, sigma * sigma)) / max(scale, 1e-9)

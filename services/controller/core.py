@@ -22,9 +22,7 @@ class ControllerCore:
         self.calibration = calibration or SpreadCalibration(horizon=0)
         self.period_s = period_s
         self.s_m: float | None = None         # route distance of the newest estimate
-        self.v_mps = 0.0                      # the speed last commanded
         self.kappa = self.calibration.factors_at(None)   # the calibration's factors of the latest step
-        self.extra = self.calibration.extras_at(None)    # ... and the variance its memory of places added
 
     def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, Observation | None]:
         """One control step at robot tick `tick`: the command to apply now, and the disturbance
@@ -35,15 +33,12 @@ class ControllerCore:
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
         if loc is not None and loc.has_pose:
             self._realize(loc)
-        self.kappa = self.calibration.factors_at(self.s_m, self.v_mps)
-        self.extra = self.calibration.extras_at(self.s_m, self.v_mps)
-        beyond = self.calibration.beyond_at(self.s_m, self.v_mps)
+        self.kappa = self.calibration.factors_at(self.s_m)
+        beyond = self.calibration.beyond_at(self.s_m)
         factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
-        extra = tuple((float(a), float(b)) for a, b in self.extra) if self.extra.any() else ()
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors,
-                                     (beyond.speed_mps, factors), extra)
+                                     (beyond.speed_mps, factors))
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
-        self.v_mps = decision.v_mps
         if decision.state == "stopped":
             # a robot held at rest after a safety stop shows nothing of how it moves, and how many such steps
             # a trial has depends on when the runner ends it
@@ -72,16 +67,13 @@ class ControllerCore:
         if unc is None or not unc.horizon_sigma_lat_m or law.predicted is None or d.state != "tracking":
             return
         scales = np.asarray(unc.spread_kappa) if unc.spread_kappa else self.kappa
-        extra = np.zeros((0, 2)) if not self.extra.any() else self.extra
         hint, predictions = d.vertex, []
         for j, x in enumerate(np.asarray(law.predicted)):
             pr = self.path.project(x, hint=hint)
             hint = pr.vertex
             loc = (unc.horizon_loc_sigma_lat_m[j], unc.horizon_loc_sigma_head_rad[j]) \
                 if j < len(unc.horizon_loc_sigma_lat_m) else (0.0, 0.0)
-            added = (float(extra[j, 0]), float(extra[j, 1])) if j < len(extra) else (0.0, 0.0)
             predictions.append(Prediction(j + 1, pr.lateral_m, pr.heading_rad, unc.horizon_sigma_lat_m[j],
                                           unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0,
-                                          *loc, s_m=d.distance_m, v_mps=d.v_mps, extra_lat_m2=added[0],
-                                          extra_head_rad2=added[1]))
+                                          *loc, s_m=d.distance_m, v_mps=d.v_mps))
         self.calibration.predict(tick, predictions)

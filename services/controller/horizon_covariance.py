@@ -26,8 +26,7 @@ def variance_model(gp, s: NMPCSettings) -> DisturbanceVariance:
 @dataclass(frozen=True)
 class HorizonCovariance:
     """This step's covariance model: the disturbance variance, the covariance at the horizon's start, and
-    the online calibration's factors on each step's predicted standard deviations and the variance its
-    memory of places adds to each step, (K, 2) lateral and heading (calibration.py)."""
+    the online calibration's factors on each step's predicted standard deviations (calibration.py)."""
     var: DisturbanceVariance
     Sigma0: np.ndarray
     dt: float
@@ -35,12 +34,10 @@ class HorizonCovariance:
     factors: np.ndarray | None = None
     Sigma_loc: np.ndarray = field(default_factory=DEFAULT_START_COV.copy)   # the localizer's, where captured
     captured_xy: tuple[float, float] = (0.0, 0.0)  # where it was captured (route frame)
-    extra: np.ndarray | None = None
 
     @classmethod
     def at_start(cls, pose_cov: np.ndarray | None, start: HorizonStart, var: DisturbanceVariance, dt: float,
-                 gamma: float, factors: tuple[float, ...] = (),
-                 extra: tuple[tuple[float, float], ...] = ()) -> HorizonCovariance:
+                 gamma: float, factors: tuple[float, ...] = ()) -> HorizonCovariance:
         """The localizer's covariance, carried through the periods of localization delay (eq. 7.12)."""
         Sigma = np.array(pose_cov, dtype=float) if pose_cov is not None else DEFAULT_START_COV.copy()
         loc, at = Sigma.copy(), (start.delay[0].pose if start.delay else start.x0)
@@ -49,7 +46,7 @@ class HorizonCovariance:
             for p, g, vg in zip(start.delay, G, V):
                 Sigma = sigma_point_step(p.pose, Sigma, g, vg, p.v_mps, p.w_radps, dt, gamma)
         return cls(var, Sigma, dt, gamma, np.asarray(factors, dtype=float) if factors else None, loc,
-                   (float(at[0]), float(at[1])), np.asarray(extra, dtype=float).reshape(-1, 2) if extra else None)
+                   (float(at[0]), float(at[1])))
 
     def localizer_part(self, X: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Route-frame standard deviations (K, 3) of x_1..x_K (measured along the route's `direction` (K,))
@@ -65,38 +62,23 @@ class HorizonCovariance:
 
     def _kappa(self, n_rows: int) -> np.ndarray:
         k = np.ones(n_rows)
-        if self.factors is not None:
-            n = min(n_rows, len(self.factors))
-            k[:n] = np.square(self.factors[:n])
+        n = min(n_rows, len(self.factors))
+        k[:n] = np.square(self.factors[:n])
         return k
-
-    def _extra(self, n_rows: int) -> np.ndarray:
-        """(n_rows, 3): the places' added variance per step, none along the route."""
-        e = np.zeros((n_rows, 3))
-        if self.extra is not None:
-            n = min(n_rows, len(self.extra))
-            e[:n, 1:] = self.extra[:n]
-        return e
 
     def widened(self, sig: np.ndarray, loc: np.ndarray) -> np.ndarray:
         """Per-step standard deviations (K, 3): the model's share of the variance, sig^2 - loc^2, times the
-        calibration's factor kappa_j, plus the variance its memory of places adds, plus the localizer's
-        share `loc` as it is."""
-        if self.factors is None and self.extra is None:
+        calibration's factor kappa_j, plus the localizer's share `loc` as it is."""
+        if self.factors is None:
             return sig
         k = self._kappa(len(sig)).reshape(-1, 1)
         loc2 = np.minimum(np.square(loc), np.square(sig))
-        return np.sqrt(loc2 + k * (np.square(sig) - loc2) + self._extra(len(sig)))
-
-    def least(self, loc: np.ndarray) -> np.ndarray:
-        """(K, 3): the least standard deviations at any speed: the localizer's share `loc` and the places'
-        added variance, which no slower plan sheds."""
-        return np.sqrt(np.square(loc) + self._extra(len(loc)))
+        return np.sqrt(loc2 + k * (np.square(sig) - loc2))
 
     def widened_derivative(self, dsig: np.ndarray, sig: np.ndarray, loc: np.ndarray) -> np.ndarray:
         """The derivative (rows j) of the widened lateral sigma from that of the model's, `dsig`, the
-        localizer's share and the places' added variance held fixed."""
-        if self.factors is None and self.extra is None:
+        localizer's share held fixed."""
+        if self.factors is None:
             return dsig
         k = self._kappa(len(sig))
         wide = self.widened(sig, loc)[:, 1]

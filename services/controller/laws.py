@@ -48,9 +48,6 @@ class StepContext:
     # (calibration.Beyond; empty: the same)
     spread_factors_beyond: tuple[float, ...] = ()
     spread_beyond_mps: float = float("inf")
-    # per horizon step, the variance (lateral m^2, heading rad^2) the memory of places adds to the prediction
-    # (calibration.extras_at); empty: none
-    spread_extra_var: tuple[tuple[float, float], ...] = ()
     loc_age_s: float = 0.0               # how old `pose` is (now - its capture): what the feedback lags by
 
 

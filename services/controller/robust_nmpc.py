@@ -123,7 +123,7 @@ class MMLBNMPCLaw:
         A = np.empty((problem.K, 9))
         X0, _ = problem.rollout(u0, with_jac=True, a_out=A)     # the solver's first linearization reuses it
         cov = HorizonCovariance.at_start(ctx.pose_cov, problem.start, variance_model(gp, s), self.dt, s.sp_gamma,
-                                         ctx.spread_factors, ctx.spread_extra_var)
+                                         ctx.spread_factors)
         loc = cov.localizer_part(X0, problem.ref.direction_rad[1:])
         return cov.widened(cov.along(problem, X0, A, problem.v, u0)[1], loc), loc
 
@@ -159,7 +159,7 @@ class RCLBNMPCLaw:
         gp = self.model_for(dataclasses.replace(ctx, v_mps=self._window_speed(ctx)))
         base, _ = build_problem(ctx, s, dt, gp)
         cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(gp, s), dt, s.sp_gamma,
-                                         ctx.spread_factors, ctx.spread_extra_var)
+                                         ctx.spread_factors)
         v, w, v_max = self._warm_start(ctx, base)
         problem = base.following(v)
         lo_lat, hi_lat, head_lim = corridor.at(problem.ref.s_m[1:])
@@ -187,7 +187,7 @@ class RCLBNMPCLaw:
                              uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
         if rung is not None:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
-                                      sig_floor=np.minimum(cov.least(rung.sig_loc)[:, 1], sig[:, 1]))
+                                      sig_floor=np.minimum(rung.sig_loc[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
         return self._report(nlp, start, result, gp is not None, rung, cov)
 

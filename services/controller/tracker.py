@@ -119,13 +119,11 @@ class PathTracker:
     def step(self, now_s: float, loc: LocState | None, tick: int | None = None,
              command_at: Callable[[int], tuple[float, float] | None] | None = None,
              spread_factors: tuple[float, ...] = (),
-             spread_beyond: tuple[float, tuple[float, ...]] = (float("inf"), ()),
-             spread_extra: tuple[tuple[float, float], ...] = ()) -> Decision:
+             spread_beyond: tuple[float, tuple[float, ...]] = (float("inf"), ())) -> Decision:
         """`tick`: the robot tick this command will be applied at; `command_at(t)`: the command applied
         at tick t. With both, the law learns which commands were applied since the estimate's capture.
         `spread_factors`: the online calibration's factors on the predicted spread per step (calibration.py);
-        `spread_beyond`: from which speed a plan outruns the place's passes, and the factors then;
-        `spread_extra`: the variance per step (lateral, heading) the memory of places adds."""
+        `spread_beyond`: from which speed a plan outruns the place's passes, and the factors then."""
         if loc is not None and loc.has_pose:
             self._last_ok = loc
         last = self._last_ok
@@ -183,7 +181,7 @@ class PathTracker:
                           delayed_cmds=delayed, cmd_before_capture=before, xi_capture=xi_capture, xi_now=xi_now,
                           pose_cov=self.route_cov(last), corridor=self.corridor, v_max_mps=self.limits.v_max_mps,
                           spread_factors=spread_factors, spread_beyond_mps=spread_beyond[0],
-                          spread_factors_beyond=spread_beyond[1], spread_extra_var=spread_extra, loc_age_s=age)
+                          spread_factors_beyond=spread_beyond[1], loc_age_s=age)
         res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
