@@ -218,3 +218,23 @@ def test_the_localizers_share_is_its_covariance_carried_along_the_plan():
                              np.zeros(15))
     cov = HorizonCovariance(var=None, Sigma0=P, dt=0.1, gamma=2.0, Sigma_loc=P, captured_xy=(0.0, 0.0))
     assert np.allclose(cov.localizer_part(X, np.zeros(15)), reference, rtol=0.02)
+
+
+def test_a_place_counts_from_where_the_robot_could_still_slow_down_for_it():
+    """At 2 m/s a drive held to 0.5 m/s^2 needs 4 m to slow down: a plan made 6 m before the rough patch
+    of the last pass (or before one the teach pass found rough) already allows for it; at a crawl, or
+    further back, only the neighbouring places count."""
+    rough = lambda s: 4.0 if 40.0 <= s < 44.0 else 0.0      # noqa: E731
+    cal = SpreadCalibration(horizon=1, brake_mps2=0.5)
+    drive_pass(cal, rough)
+    second = cal.continued()
+    assert second.brake_mps2 == 0.5
+    assert second.factors_at(34.0, 2.0)[0] == pytest.approx(MARGIN * 16.0 / 9.0)
+    assert second.factors_at(34.0, 0.0)[0] == 1.0 and second.factors_at(30.0, 2.0)[0] == 1.0
+    rows = [[1.0]] * 50
+    rows[20] = [2.0]
+    teach = SpreadCalibration(horizon=1, places=teach_places(2.0, rows, 1), speeds=teach_speeds(2.0, [1.0] * 50),
+                              brake_mps2=0.5)
+    b = teach.beyond_at(34.0, 2.0)
+    assert b.speed_mps == pytest.approx(GROWTH * 1.0) and b.factors[0] == pytest.approx(MARGIN * 4.0)
+    assert teach.beyond_at(34.0, 0.0).factors is None and teach.factors_at(34.0, 0.0)[0] == 1.0

@@ -43,6 +43,8 @@ distance); near a place, kappa_j is at least MARGIN times the largest need of th
 learned the place narrows the spread there one trial later. The teach pass is a route's first pass: its
 needs by place (identification.place_factors) start trial 1's memory, so that a rough patch the teach
 pass crossed is not entered unwidened after a calm stretch has emptied the window of the teach factors.
+A plan counts the places ahead of it as far as the robot needs to slow down (v^2 / 2a, with the drive's
+acceleration limit identified on the teach pass): the ladder changes speed at once, the drive does not.
 
 What a pass met at a place holds near the speed it drove there: a calm pass at 1.4 m/s says nothing of
 2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
@@ -93,7 +95,10 @@ class Beyond:
 class SpreadCalibration:
     def __init__(self, horizon: int, scales: np.ndarray | None = None,
                  recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None,
-                 speeds: dict[int, float] | None = None, first: dict[int, np.ndarray] | None = None):
+                 speeds: dict[int, float] | None = None, first: dict[int, np.ndarray] | None = None,
+                 brake_mps2: float = math.inf):
+        """`brake_mps2`: the deceleration the drive is held to (identified on the teach pass; inf: none
+        seen): how far ahead a place must already be allowed for (_near)."""
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -107,6 +112,7 @@ class SpreadCalibration:
         self.first = dict(first if first is not None else self.places_before)   # the teach pass's needs
         self.speeds_before = dict(speeds or {})      # place bin -> the fastest speed commanded there
         self.speeds_now: dict[int, float] = {}
+        self.brake_mps2 = brake_mps2
 
     def continued(self) -> "SpreadCalibration":
         """A calibration for the next trial on the same route and model: this one's recent needs and
@@ -115,31 +121,38 @@ class SpreadCalibration:
         speeds = {b: max(self.speeds_before.get(b, 0.0), self.speeds_now.get(b, 0.0))
                   for b in {*self.speeds_before, *self.speeds_now}}
         return SpreadCalibration(len(self.recent), self.scales, self.recent,
-                                 {**self.places_before, **self.places_now}, speeds, self.first)
+                                 {**self.places_before, **self.places_now}, speeds, self.first, self.brake_mps2)
 
-    def factors_at(self, s_m: float | None) -> np.ndarray:
-        """kappa_j for a prediction made at route distance `s_m` (None: the recent window's alone)."""
+    def _near(self, s_m: float, v_mps: float) -> range:
+        """The place bins a plan made at `s_m` at speed `v_mps` must already allow for: the neighbouring
+        ones, and those within the distance the robot needs to slow down (v^2 / 2a) beyond: a place the
+        ladder first saw one bin ahead would be met at the speed of the bins before it."""
+        reach = v_mps * v_mps / (2.0 * self.brake_mps2) if self.brake_mps2 > 0.0 else 0.0
+        return range(math.floor(s_m / PLACE_BIN_M) - 1, math.floor((s_m + reach) / PLACE_BIN_M) + 2)
+
+    def factors_at(self, s_m: float | None, v_mps: float = 0.0) -> np.ndarray:
+        """kappa_j for a prediction made at route distance `s_m` at speed `v_mps` (None: the recent
+        window's alone), the places near it (_near) included."""
         if s_m is None or not math.isfinite(s_m) or not self.places_before:
             return self.scales.copy()
-        b = math.floor(s_m / PLACE_BIN_M)
-        near = [self.places_before[i] for i in (b - 1, b, b + 1) if i in self.places_before]
+        near = [self.places_before[i] for i in self._near(s_m, v_mps) if i in self.places_before]
         if not near:
             return self.scales.copy()
         return _widened(self.scales, np.max(near, axis=0))
 
-    def beyond_at(self, s_m: float | None) -> Beyond:
-        """For a plan made at route distance `s_m`: from which speed it outruns what the passes over the
-        place vouch for (GROWTH times the slowest of the neighbouring places' fastest speeds), and the
-        factors then (the teach pass's needs there over factors_at's). Nothing where the teach pass
-        needed no widening."""
+    def beyond_at(self, s_m: float | None, v_mps: float = 0.0) -> Beyond:
+        """For a plan made at route distance `s_m` at speed `v_mps`: from which speed it outruns what the
+        passes over the places near (_near) vouch for (GROWTH times the slowest of their fastest speeds),
+        and the factors then (the teach pass's needs there over factors_at's). Nothing where the teach
+        pass needed no widening."""
         if s_m is None or not math.isfinite(s_m) or not self.first:
             return Beyond()
-        b = math.floor(s_m / PLACE_BIN_M)
-        first = [self.first[i] for i in (b - 1, b, b + 1) if i in self.first]
+        near = self._near(s_m, v_mps)
+        first = [self.first[i] for i in near if i in self.first]
         if not first:
             return Beyond()
-        seen = [self.speeds_before[i] for i in (b - 1, b, b + 1) if i in self.speeds_before]
-        kappa = _widened(self.factors_at(s_m), np.max(first, axis=0))
+        seen = [self.speeds_before[i] for i in near if i in self.speeds_before]
+        kappa = _widened(self.factors_at(s_m, v_mps), np.max(first, axis=0))
         return Beyond(GROWTH * min(seen) if seen else math.inf, kappa)
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:

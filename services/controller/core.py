@@ -22,6 +22,7 @@ class ControllerCore:
         self.calibration = calibration or SpreadCalibration(horizon=0)
         self.period_s = period_s
         self.s_m: float | None = None         # route distance of the newest estimate
+        self.v_mps = 0.0                      # the speed last commanded
         self.kappa = self.calibration.factors_at(None)   # the calibration's factors of the latest step
 
     def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, Observation | None]:
@@ -33,12 +34,13 @@ class ControllerCore:
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
         if loc is not None and loc.has_pose:
             self._realize(loc)
-        self.kappa = self.calibration.factors_at(self.s_m)
-        beyond = self.calibration.beyond_at(self.s_m)
+        self.kappa = self.calibration.factors_at(self.s_m, self.v_mps)
+        beyond = self.calibration.beyond_at(self.s_m, self.v_mps)
         factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors,
                                      (beyond.speed_mps, factors))
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
+        self.v_mps = decision.v_mps
         if decision.state == "stopped":
             # a robot held at rest after a safety stop shows nothing of how it moves, and how many such steps
             # a trial has depends on when the runner ends it

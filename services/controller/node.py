@@ -155,15 +155,17 @@ class ControllerService(Service):
         """Where the online check of the predicted spread starts: where the last trial on this route under
         this model left it, else the teach pass's factors (identification.py), else nothing widened. The
         teach factors (overall, and by place as the memory of places) measure the teach residuals against
-        the identified prior: a hand-set prior starts unwidened."""
+        the identified prior: a hand-set prior starts unwidened. The drive's acceleration limit seen on the
+        teach pass is the robot's, whichever model it drives with."""
         if (path_id, model_tag) in self.calibrations:
             return self.calibrations[(path_id, model_tag)].continued()
         model = self.nominal.of(path_id)
+        brake = (model.rate_limit_v_mps2 or math.inf) if model is not None else math.inf
         if model is None or model.model_tag != model_tag or not self.cfg.nmpc.prior_is_identified:
-            return SpreadCalibration(horizon)
+            return SpreadCalibration(horizon, brake_mps2=brake)
         return SpreadCalibration(horizon, np.square(model.spread_factors[:horizon]),
                                  places=teach_places(model.place_bin_m, model.place_spread_factors, horizon),
-                                 speeds=teach_speeds(model.place_bin_m, model.place_speed_mps))
+                                 speeds=teach_speeds(model.place_bin_m, model.place_speed_mps), brake_mps2=brake)
 
     def _use_model(self, tag: str) -> None:
         """The trial's nominal model names its experiences and selects the windows and fits learned from."""
