@@ -5,7 +5,8 @@ OpenCV pipeline that shares no code with the localizer (SIFT matched left-right 
 matched into the next left image, solvePnPRansac + solvePnPRefineLM). Rotations are summed as rotation
 vectors of the frame-to-frame motions, in degrees about the camera's x (pitch), y (yaw), z (roll).
 Where two independent estimates agree with each other and not with the ground truth, the ground truth
-is what moved. Prints one JSON line per stretch and the whole excerpt last.
+is what moved. Prints one JSON line per stretch, the whole excerpt, then the VO's end-point drift as
+is and with its first stretch replaced by the ground truth's.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import numpy as np
 
 from bench.localizer_kitti import KittiSequence, load_kitti
 from common.se3 import inverse as inv_T
+from common.se3 import rotation_angle_deg
 from services.localizer.vision import StereoFrontend, VisionSettings, VisualTeach
 
 RATIO = 0.75          # Lowe's ratio test
@@ -74,7 +76,16 @@ def _vo_chain(seq: KittiSequence) -> list[np.ndarray]:
     return chain
 
 
+def _drift(seq: KittiSequence, T_first_last: np.ndarray) -> dict:
+    """The bench's figures (bench.localizer_kitti): final pose error over the distance driven."""
+    dist = float(np.sum(np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1)))
+    E = inv_T(seq.poses[-1]) @ T_first_last
+    return {"drift_pct": round(100.0 * float(np.linalg.norm(E[:3, 3])) / dist, 3),
+            "drift_deg_per_m": round(rotation_angle_deg(E) / dist, 5)}
+
+
 def check(seq: KittiSequence, stretches: list[tuple[int, int]]) -> list[dict]:
+    """One row per stretch, then the VO chain's drift as is and with its first stretch as the truth has it."""
     chain, cv_vo = _vo_chain(seq), _OpenCvStereoVO(seq)
     steps = {"truth": [inv_T(seq.poses[i]) @ seq.poses[i + 1] for i in range(len(seq) - 1)],
              "localizer_vo": [inv_T(chain[i]) @ chain[i + 1] for i in range(len(seq) - 1)],
@@ -86,6 +97,9 @@ def check(seq: KittiSequence, stretches: list[tuple[int, int]]) -> list[dict]:
         for name, s in steps.items():
             row[f"{name}_rotvec_deg"] = [round(float(x), 3) for x in sum(_rotvec_deg(T[:3, :3]) for T in s[a:b])]
         rows.append(row)
+    k = stretches[0][1]
+    rows.append({"localizer_vo": _drift(seq, chain[-1]),
+                 f"localizer_vo_with_truth_until_frame_{k}": _drift(seq, seq.poses[k] @ inv_T(chain[k]) @ chain[-1])})
     return rows
 
 
