@@ -18,7 +18,7 @@ from services.controller.identification import (DEFAULT_LEVEL, TeachRecorder, Te
                                                 fit_turn_gain, identify, identify_drive, place_factors,
                                                 scaled_prior, teach_observations, teach_residuals)
 from services.controller.uncertainty import PriorStd
-from services.gp_store.authority import V_CMD
+from common.turn_share import V_CMD
 from services.gp_store.config import FitConfig
 from services.gp_store.fitting import fit_route
 from services.localizer.pose_source import PoseSourceSettings

@@ -5,7 +5,8 @@ import pytest
 
 from common.gp import SEHyper
 from services.controller.actuator import ActuatorLag
-from services.gp_store.authority import (TURN_INPUTS, W_ACT, W_CMD, AuthorityRule, turn_authority)
+from common.turn_share import W_ACT, W_CMD
+from services.gp_store.authority import TURN_INPUTS, AuthorityRule, turn_authority
 from services.gp_store.fitting import fit_route
 
 DT = 0.1

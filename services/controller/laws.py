@@ -93,6 +93,7 @@ class LawResult:
     solve: SolveReport | None = None
     uncertainty: UncertaintyReport | None = None
     feedforward_radps: float = 0.0        # ILC: the learned part of w_radps
+    note: str = ""                        # what the law did unlike its usual step (the status's reason)
 
 
 class SteeringLaw(Protocol):

@@ -17,6 +17,7 @@ import numpy as np
 
 from services.controller.actuator import ActuatorLag
 from services.controller.gauss_newton import gauss_newton
+from services.controller.held_turn import held_note, hold_turn_where_cancelled
 from services.controller.horizon import (DelayedPeriod, DisturbanceModel, HorizonProblem, HorizonStart,
                                          reference_at)
 from services.controller.laws import LawResult, SolveReport, StepContext
@@ -133,6 +134,9 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
                                                     lag.turn_gain))
     start = HorizonStart(x0=x0, v_prev_act=v_prev, u_prev=u_prev, xi0=ctx.xi_now, delay=delay)
     problem = HorizonProblem(start, ref, v, w_ref, dt, settings, model, ctx.path, lag)
+    held = hold_turn_where_cancelled(problem, ctx.prev_cmd[1], settings.min_turn_share)
+    if held is not model:
+        problem = HorizonProblem(start, ref, v, w_ref, dt, settings, held, ctx.path, lag)
     return problem, np.array([ctx.w_limit_at(vj) for vj in v])
 
 
@@ -176,4 +180,5 @@ class LBNMPCLaw:
         self.last_plan = Plan(res.u, X, problem.ref.poses, res.cost, res.iterations, res.converged)
         self.last_step = LBNMPCStep(problem, w0, w_limit, res.u)
         return LawResult(float(res.u[0]), predicted=X[1:],
-                         solve=SolveReport(res.cost, res.iterations, res.evaluations, res.status, model is not None))
+                         solve=SolveReport(res.cost, res.iterations, res.evaluations, res.status, model is not None),
+                         note=held_note(problem.model))

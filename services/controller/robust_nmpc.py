@@ -34,6 +34,7 @@ from services.controller.band_reach import reach_capped, start_errors
 from services.controller.corridor import Corridor
 from services.controller.corridor_sqp import CorridorNLP, CorridorResult, Iterate, solve_corridor
 from services.controller.horizon import HorizonProblem
+from services.controller.held_turn import held_note
 from services.controller.horizon_covariance import HorizonCovariance, variance_model
 from services.controller.laws import LawResult, SolveReport, StepContext, UncertaintyReport
 from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
@@ -108,7 +109,8 @@ class MMLBNMPCLaw:
         return LawResult(float(res.u[0]), predicted=X[1:],
                          solve=SolveReport(res.cost, res.iterations, res.evaluations, res.status, gp is not None),
                          uncertainty=UncertaintyReport(float(sig[:, 1].max()), float(sig[:, 2].max()),
-                                                       worst_case=worst_case, **_horizon_sigmas(sig, loc)))
+                                                       worst_case=worst_case, **_horizon_sigmas(sig, loc)),
+                         note=held_note(problem.model))
 
     def _warm_start(self, problem: HorizonProblem, w_limit: np.ndarray) -> np.ndarray:
         if self.last_plan is None:
@@ -283,4 +285,5 @@ class RCLBNMPCLaw:
                          uncertainty=UncertaintyReport(float(sig[:, 1].max()), float(sig[:, 2].max()),
                                                        speed_scale=1.0 if rung is None else rung.scale,
                                                        violation=it.violation, **_horizon_sigmas(sig, loc),
-                                                       spread_kappa=_kappa(cov)))
+                                                       spread_kappa=_kappa(cov)),
+                         note=held_note(nlp.problem.model))

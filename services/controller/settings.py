@@ -46,6 +46,9 @@ class NMPCSettings:
     # C/RC beyond the first step: the tightened band keeps at least this fraction of the corridor (the
     # open-loop covariance ignores the localization updates still to come)
     min_band_fraction: float = 0.2
+    # where the learned heading model keeps less than this share of the nominal turn at a step's planned
+    # inputs, that step plans with its heading mean held at the last command (held_turn.py); 0: never
+    min_turn_share: float = 0.1
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)   # floor for what never repeats
     # MM/C/RC: how far an experience vouches at most, as the GP variance's lengthscale caps along the route
     # (m), in commanded speed (m/s) and in commanded turn rate (rad/s); the mean keeps the fitted ones
@@ -94,6 +97,8 @@ class NMPCSettings:
             raise ValueError("r_w or r_dw must be > 0 (eq. 5.3 needs R positive definite)")
         if not 0.0 <= self.min_band_fraction < 1.0:
             raise ValueError("min_band_fraction must be in [0, 1)")
+        if not 0.0 <= self.min_turn_share < 1.0:
+            raise ValueError("min_turn_share must be in [0, 1)")
 
     def lag(self, dt: float) -> ActuatorLag:
         tau = self.actuator_tau_s or (0.0, 0.0)

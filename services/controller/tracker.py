@@ -191,7 +191,7 @@ class PathTracker:
         w_limit = self.limits.w_limit(v)
         w = max(-w_limit, min(w_limit, res.w_radps))
         self._last_cmd = (v, w)
-        return Decision(v, w, "tracking", reason, vertex, dist, lat, head, age, res)
+        return Decision(v, w, "tracking", reason or res.note, vertex, dist, lat, head, age, res)
 
     def _drive_speed(self, tick: int | None, command_at: Callable[[int], tuple[float, float] | None] | None) -> float:
         """The speed the drive still has by the lag model (0 without one, or without a command history:

@@ -8,20 +8,17 @@ whatever is commanded", g_head ~ (w_act - w_cmd) dt. That predicts one period we
 steering away from the NMPC, which then commands either sign at the limit (measured: a MATS in a
 deepening rut corner, 0.2 m corridor, left the route by 1.0-1.8 m in three of eight trials).
 
-The check: per fitted point, with G_i = dg_head/da_i / dt (dimensionless) and the nominal turn gain k,
-the share of the nominal turn the model keeps for a command held one period, (k + G_wcmd) / k, and for
-a command held until the turn rate settles, r = k w + (G_wcmd + G_wprev) w + G_wact r, i.e.
-
-    (k + G_wcmd + G_wprev) / (k (1 - G_wact))        (G_wact < 1; otherwise it has no steady turn),
-
-whichever is smaller. Terrain scales the turn (slip lowers it, a skid-steer at speed keeps a fraction of
+The check: per fitted point, the share of the nominal turn the model keeps (common/turn_share.py; for a
+command held one period and one held until the turn rate settles, r = k w + (G_wcmd + G_wprev) w + G_wact r).
+Terrain scales the turn (slip lowers it, a skid-steer at speed keeps a fraction of
 it) but does not cancel or reverse it; a model that keeps less than `min_share` (default 0.1) at more than
 MAX_FRACTION_BELOW of its points has learned the controller's own commands,
 and the store refits its heading dimension with the turn-rate inputs switched off (lengthscales >= the
 fit's off-lengthscale): the place and the speed explain the yaw. Gradients come from each local window's
 GP, as the controller predicts (thesis 5.3.2). By default the store fits the heading without w_act and
 w_cmd_prev already (config.py `heading_from_turn_history`), which removes the persistence; the check
-then guards the command's own term.
+then guards the command's own term. A fit that passes can still cancel the steering between its points;
+the controller checks its own plans the same way (services/controller/held_turn.py).
 """
 from __future__ import annotations
 
@@ -31,9 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.gp import GaussianProcess, SEHyper
+from common.turn_share import W_ACT, W_CMD, W_CMD_PREV, kept_turn_share
 
-HEADING = 2                            # output dimension of g (G_NAMES dtheta_rad)
-W_ACT, V_CMD, W_CMD, W_CMD_PREV = 4, 5, 6, 8     # inputs of a (A_NAMES)
 TURN_INPUTS = (W_ACT, W_CMD, W_CMD_PREV)
 MAX_FRACTION_BELOW = 0.01              # of the fitted points, the share allowed below min_share (outliers)
 
@@ -85,15 +81,11 @@ def turn_authority(A: np.ndarray, g_head: np.ndarray, groups: np.ndarray | None,
     doc), each row's gradient from the GP of its group (all rows one GP without groups)."""
     labels = np.zeros(len(A), dtype=int) if groups is None else np.asarray(groups)
     shares = np.empty(len(A))
-    k = rule.turn_gain
     for label in np.unique(labels):
         rows = np.flatnonzero(labels == label)
         gp = GaussianProcess(A[rows], g_head[rows, None], [hyper])
         for i in rows:
-            dg = gp.mean_and_grad(A[i])[1][0] / rule.period_s
-            persist = dg[W_ACT]
-            steady = (k + dg[W_CMD] + dg[W_CMD_PREV]) / (k * (1.0 - persist)) if persist < 1.0 else -np.inf
-            shares[i] = min((k + dg[W_CMD]) / k, steady)
+            shares[i] = kept_turn_share(gp.mean_and_grad(A[i])[1][0] / rule.period_s, rule.turn_gain)
     return AuthorityCheck(shares, rule.min_share)
 
 

@@ -5,7 +5,7 @@ import math
 from dataclasses import dataclass, field
 
 from common.bins import BinPolicy
-from services.gp_store.authority import HEADING, V_CMD, W_ACT, W_CMD_PREV
+from common.turn_share import HEADING, V_CMD, W_ACT, W_CMD_PREV
 
 
 # How fast a disturbance can physically change with each input of a (experience.py A_NAMES): terrain

@@ -10,7 +10,8 @@ import numpy as np
 
 from common.gp import SEHyper, fit_hyperparameters, subsample_rows
 from common.messages import HyperDim, HyperMsg
-from services.gp_store.authority import HEADING, AuthorityRule, turn_authority, turn_free
+from common.turn_share import HEADING
+from services.gp_store.authority import AuthorityRule, turn_authority, turn_free
 
 
 @dataclass(frozen=True, kw_only=True)
