@@ -33,8 +33,9 @@ def test_the_share_a_linear_heading_model_keeps_worked_by_hand():
     # history inputs, so the settled share is the same
     A = np.zeros((3, 9))
     A[:, W_CMD] = [-0.3, 0.0, 0.4]
-    assert least_kept_share(LinearHeading(-0.066), A, 0.6, DT) == pytest.approx(-0.1)
-    assert least_kept_share(LinearHeading(-0.03), A, 0.6, DT) == pytest.approx(0.5)
+    for slope, share in ((-0.066, -0.1), (-0.03, 0.5)):
+        gradients = np.array([LinearHeading(slope).mean_and_grad(a)[1] for a in A])
+        assert least_kept_share(gradients, 0.6, DT) == pytest.approx(share)
 
 
 @pytest.mark.parametrize("slope, min_share, held", [(-1.06 * DT, 0.1, True), (-0.5 * DT, 0.1, False),

@@ -74,9 +74,9 @@ def held_note(model: DisturbanceModel | None) -> str:
             f"held at the command {model.w_cmd_radps:+.2f} rad/s")
 
 
-def least_kept_share(model: DisturbanceModel, A: np.ndarray, turn_gain: float, dt: float) -> float:
-    """The least share of the nominal turn the heading model keeps over the inputs A (n, 9)."""
-    return min(kept_turn_share(model.mean_and_grad(a)[1][HEADING] / dt, turn_gain) for a in A)
+def least_kept_share(gradients: np.ndarray, turn_gain: float, dt: float) -> float:
+    """The least share of the nominal turn a heading model keeps, from its gradients dg/da (n, 3, 9)."""
+    return min(kept_turn_share(dg[HEADING] / dt, turn_gain) for dg in gradients)
 
 
 def hold_turn_where_cancelled(problem: HorizonProblem, w_cmd_radps: float, min_share: float) -> DisturbanceModel | None:
@@ -85,7 +85,5 @@ def hold_turn_where_cancelled(problem: HorizonProblem, w_cmd_radps: float, min_s
     model = problem.model
     if model is None or min_share <= 0.0:
         return model
-    A = np.empty((problem.K, 9))
-    problem.rollout(problem.w_ref, False, a_out=A)
-    share = least_kept_share(model, A, problem.turn_gain, problem.dt)
+    share = least_kept_share(problem.model_gradients(problem.w_ref), problem.turn_gain, problem.dt)
     return model if share >= min_share else HeldTurn(model, float(w_cmd_radps), share)

@@ -209,6 +209,15 @@ class HorizonProblem:
         self._memo = [(key, with_jac, with_v_jac, out, A.copy())] + self._memo[:1]
         return out if with_v_jac else (X, Sw)
 
+    def model_gradients(self, w: np.ndarray) -> np.ndarray:
+        """The disturbance model's gradients dg/da (K, 3, 9) along the rollout of turn rates w at the
+        profile's speeds (no sensitivities: one pass of the model)."""
+        if self.model is None:
+            raise ValueError("no disturbance model")
+        vb = self.effective(self.v)[0]
+        wb = self._turn_rates(np.asarray(w, dtype=float), self.v, vb)[0]
+        return self._mean(w, self.v, vb, wb, np.empty((self.K, 9)), True)[1].Dg
+
     def _mean(self, w: np.ndarray, v_all: np.ndarray, vb_all: np.ndarray, wb_all: np.ndarray, a_out: np.ndarray,
               jac: bool) -> tuple[np.ndarray, _StepTerms | None]:
         """The mean rolled out point by point (the GP's input depends on the state)."""
