@@ -34,6 +34,7 @@ def _rotvec_deg(R: np.ndarray) -> np.ndarray:
 class _OpenCvStereoVO:
     def __init__(self, seq: KittiSequence):
         self.seq, self.sift, self.bf = seq, cv2.SIFT_create(5000), cv2.BFMatcher()
+        self._left: dict[int, tuple[np.ndarray, np.ndarray]] = {}   # the next frame's left image is the following motion's left
         cam = seq.camera
         self.K = np.array([[cam.fu, 0.0, cam.cu], [0.0, cam.fv, cam.cv], [0.0, 0.0, 1.0]])
 
@@ -41,13 +42,18 @@ class _OpenCvStereoVO:
         kps, desc = self.sift.detectAndCompute(image, None)
         return np.float32([k.pt for k in kps]), desc
 
+    def _left_features(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        if i not in self._left:
+            self._left = {i: self._features(self.seq.images(i)[0])}
+        return self._left[i]
+
     def _matches(self, da: np.ndarray, db: np.ndarray) -> list:
         return [m for m, n in self.bf.knnMatch(da, db, k=2) if m.distance < RATIO * n.distance]
 
     def motion(self, i: int) -> np.ndarray:
         """T_i_(i+1): the left camera of frame i + 1 in that of frame i."""
-        (left, right), (nxt, _) = self.seq.images(i), self.seq.images(i + 1)
-        (pl, dl), (pr, dr), (pn, dn) = self._features(left), self._features(right), self._features(nxt)
+        (pl, dl), (pr, dr) = self._left_features(i), self._features(self.seq.images(i)[1])
+        pn, dn = self._left_features(i + 1)
         cam = self.seq.camera
         pairs = [(m.queryIdx, m.trainIdx) for m in self._matches(dl, dr)
                  if abs(pl[m.queryIdx][1] - pr[m.trainIdx][1]) < ROW_TOL_PX

@@ -33,8 +33,8 @@ import numpy as np
 from services.controller.band_reach import reach_capped, start_errors
 from services.controller.corridor import Corridor
 from services.controller.corridor_sqp import CorridorNLP, CorridorResult, Iterate, solve_corridor
-from services.controller.horizon import HorizonProblem
 from services.controller.held_turn import held_note
+from services.controller.horizon import HorizonProblem
 from services.controller.horizon_covariance import HorizonCovariance, variance_model
 from services.controller.laws import LawResult, SolveReport, StepContext, UncertaintyReport
 from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
