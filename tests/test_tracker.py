@@ -269,3 +269,27 @@ def test_a_robot_held_at_rest_after_a_safety_stop_yields_no_experiences():
         observed.append(obs is not None)
     assert states[:9] == ["tracking"] * 9 and set(states[10:]) == {"stopped"}
     assert sum(observed[1:9]) >= 7 and not any(observed[10:])
+
+
+def test_a_lagging_robot_at_the_end_of_the_route_steers_along_it_until_its_drive_has_stopped():
+    """The estimate passes the last vertex while a 0.5 s drive still rolls: the end of the route is the
+    same manoeuvre as a safety stop (braking while steering towards the route, left of it: right), in the
+    state "finished" from its first step, until the lag model says the drive has stopped."""
+    from services.controller.actuator import ActuatorLag
+    from services.controller.tracker import REST_MPS
+    lag = ActuatorLag(0.5, 0.0, 0.1)
+    tr = PathTracker(PATH, FLLaw(FLGains()), TrackerLimits(v_max_mps=1.0, w_max_radps=1.0, decel_mps2=2.0),
+                     speed_mps=1.0, period_s=0.1, lag=lag)
+    sent = {k: (1.0, 0.0) for k in range(10)}
+    decisions = []
+    for k in range(10, 40):
+        d = tr.step(0.1 * k, loc(0.1 * k, x=PATH.length_m + 0.01 * (k - 9), y=0.05), tick=k, command_at=sent.get)
+        sent[k] = (d.v_mps, d.w_radps)
+        decisions.append(d)
+    assert all(d.state == "finished" for d in decisions)
+    braking = [d for d in decisions if "braking along the route" in d.reason]
+    assert len(braking) > 5 and all(d.w_radps < 0 for d in braking)
+    drive = [lag.state_before(k, sent.get)[0] for k in range(10, 41)]
+    first_still = next(i for i, d in enumerate(decisions) if "braking" not in d.reason)
+    assert drive[first_still] <= REST_MPS < drive[first_still - 1]
+    assert all(d.v_mps == 0.0 and d.w_radps == 0.0 for d in decisions[first_still:])

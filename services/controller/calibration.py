@@ -46,6 +46,12 @@ pass crossed is not entered unwidened after a calm stretch has emptied the windo
 A plan counts the places ahead of it as far as the robot needs to slow down (v^2 / 2a, with the drive's
 acceleration limit identified on the teach pass): the ladder changes speed at once, the drive does not.
 
+Rare errors and a model that changes between trials are what the recent window and the ratios do not
+hold: each realized prediction also tells, in m^2 and rad^2, the variance its error asked for and what
+it missed beyond the model's own share, which missed_variance.py remembers per step and channel over a
+longer window, across trials, as floors under every later prediction's model share (`floors`),
+whatever the ratio factors say.
+
 What a pass met at a place holds near the speed it drove there: a calm pass at 1.4 m/s says nothing of
 2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
 patch outgrow a lagging turn. So each place also keeps the fastest speed any pass (the teach pass
@@ -62,8 +68,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.controller.missed_variance import MARGIN, MissedVariance, SpreadFloors
+
 WINDOW = 150             # predictions per horizon step remembered (15 s at 10 Hz)
-MARGIN = 1.1             # on the largest need: the next error is rarely exactly the worst seen
+# MARGIN (missed_variance.py) on the largest need: the next error is rarely exactly the worst seen
 MAX_SCALE = 400.0        # 20x the modelled standard deviation
 PLACE_BIN_M = 2.0        # route distance per place whose needs are remembered across trials
 GROWTH = 1.25            # a place's passes vouch for plans up to this times the fastest speed driven there
@@ -82,6 +90,8 @@ class Prediction:
     loc_sigma_head_rad: float = 0.0
     s_m: float = math.nan             # where along the route it was made (NaN: remembered by no place)
     v_mps: float = 0.0                # the speed commanded when it was made
+    model_sigma_lat_m: float = math.nan   # the spread as the model gave it, before any widening (NaN:
+    model_sigma_head_rad: float = math.nan   # the one `scale` alone widened)
 
 
 @dataclass(frozen=True)
@@ -96,9 +106,10 @@ class SpreadCalibration:
     def __init__(self, horizon: int, scales: np.ndarray | None = None,
                  recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None,
                  speeds: dict[int, float] | None = None, first: dict[int, np.ndarray] | None = None,
-                 brake_mps2: float = math.inf):
+                 brake_mps2: float = math.inf, missed: MissedVariance | None = None):
         """`brake_mps2`: the deceleration the drive is held to (identified on the teach pass; inf: none
-        seen): how far ahead a place must already be allowed for (_near)."""
+        seen): how far ahead a place must already be allowed for (_near). `missed`: the variance earlier
+        trials' predictions missed (copied)."""
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -113,6 +124,7 @@ class SpreadCalibration:
         self.speeds_before = dict(speeds or {})      # place bin -> the fastest speed commanded there
         self.speeds_now: dict[int, float] = {}
         self.brake_mps2 = brake_mps2
+        self.missed = missed.copy() if missed is not None and missed.horizon == horizon else MissedVariance(horizon)
 
     def continued(self) -> "SpreadCalibration":
         """A calibration for the next trial on the same route and model: this one's recent needs and
@@ -121,7 +133,8 @@ class SpreadCalibration:
         speeds = {b: max(self.speeds_before.get(b, 0.0), self.speeds_now.get(b, 0.0))
                   for b in {*self.speeds_before, *self.speeds_now}}
         return SpreadCalibration(len(self.recent), self.scales, self.recent,
-                                 {**self.places_before, **self.places_now}, speeds, self.first, self.brake_mps2)
+                                 {**self.places_before, **self.places_now}, speeds, self.first, self.brake_mps2,
+                                 self.missed)
 
     def _near(self, s_m: float, v_mps: float) -> range:
         """The place bins a plan made at `s_m` at speed `v_mps` must already allow for: the neighbouring
@@ -139,6 +152,11 @@ class SpreadCalibration:
         if not near:
             return self.scales.copy()
         return _widened(self.scales, np.max(near, axis=0))
+
+    def floors(self) -> SpreadFloors:
+        """Per step and channel, what is added to the model's share of the predicted variance and the
+        least that share may be (missed_variance.py)."""
+        return self.missed.floors()
 
     def beyond_at(self, s_m: float | None, v_mps: float = 0.0) -> Beyond:
         """For a plan made at route distance `s_m` at speed `v_mps`: from which speed it outruns what the
@@ -172,9 +190,11 @@ class SpreadCalibration:
             h = math.remainder(heading_rad - p.heading_rad, 2 * math.pi)
             z_lat = d / math.sqrt(p.sigma_lat_m ** 2 + var_lat_m2 + 1e-12)
             z_head = h / math.sqrt(p.sigma_head_rad ** 2 + var_head_rad2 + 1e-12)
-            need = max(_need(d, var_lat_m2, p.loc_sigma_lat_m, p.sigma_lat_m, p.scale),
-                       _need(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale))
+            lat = _Channel(d, var_lat_m2, p.loc_sigma_lat_m, p.sigma_lat_m, p.scale, p.model_sigma_lat_m)
+            head = _Channel(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale, p.model_sigma_head_rad)
+            need = max(lat.need, head.need)
             out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
+            self.missed.add(p.step, (lat.asked, head.asked), (lat.share, head.share))
             self._remember(p, need)
         return out
 
@@ -238,13 +258,35 @@ def _widened(kappa: np.ndarray, worst: np.ndarray) -> np.ndarray:
     return np.minimum(MAX_SCALE, np.maximum(kappa, np.where(worst > 1.0, MARGIN * worst, 1.0)))
 
 
-def _need(err: float, var_estimate: float, sigma_loc: float, sigma: float, scale: float) -> float:
-    """The factor on the model's share of the variance that puts `err` on the 3-sigma boundary (at least
-    1); `sigma` was predicted with that share times `scale`."""
-    loc2 = min(sigma_loc * sigma_loc, sigma * sigma)
-    return max(1.0, (err * err / 9.0 - var_estimate - loc2) / max(_model_share(sigma_loc, sigma, scale), 1e-18))
+@dataclass(frozen=True)
+class _Channel:
+    """One channel (lateral or heading) of a realized prediction: its error `err`, the estimate's variance,
+    the predicted sigma with its localizer's share, widened (`scale`, the floors) from `sigma_model`."""
+    err: float
+    var_estimate: float
+    sigma_loc: float
+    sigma: float
+    scale: float
+    sigma_model: float = math.nan
 
+    @property
+    def _loc2(self) -> float:
+        return min(self.sigma_loc ** 2, self.sigma ** 2)
 
-def _model_share(sigma_loc: float, sigma: float, scale: float) -> float:
-    """The model's share of a predicted variance before it was widened by `scale`."""
-    return (sigma * sigma - min(sigma_loc * sigma_loc, sigma * sigma)) / max(scale, 1e-9)
+    @property
+    def share(self) -> float:
+        """The model's share of the predicted variance before it was widened."""
+        if math.isfinite(self.sigma_model):
+            return max(self.sigma_model ** 2 - min(self.sigma_loc ** 2, self.sigma_model ** 2), 0.0)
+        return (self.sigma ** 2 - self._loc2) / max(self.scale, 1e-9)
+
+    @property
+    def asked(self) -> float:
+        """The model variance that puts `err` on the 3-sigma boundary, the estimate's and the localizer's
+        variance taken off (may be negative: an error inside the localizer's own spread)."""
+        return self.err * self.err / 9.0 - self.var_estimate - self._loc2
+
+    @property
+    def need(self) -> float:
+        """The factor on the model's share that puts `err` on the 3-sigma boundary (at least 1)."""
+        return max(1.0, self.asked / max(self.share, 1e-18))

@@ -24,6 +24,7 @@ class ControllerCore:
         self.s_m: float | None = None         # route distance of the newest estimate
         self.v_mps = 0.0                      # the speed last commanded
         self.kappa = self.calibration.factors_at(None)   # the calibration's factors of the latest step
+        self.floors = self.calibration.floors()           # ... and its floors on the model's share
 
     def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, Observation | None]:
         """One control step at robot tick `tick`: the command to apply now, and the disturbance
@@ -35,10 +36,11 @@ class ControllerCore:
         if loc is not None and loc.has_pose:
             self._realize(loc)
         self.kappa = self.calibration.factors_at(self.s_m, self.v_mps)
+        self.floors = self.calibration.floors()
         beyond = self.calibration.beyond_at(self.s_m, self.v_mps)
         factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors,
-                                     (beyond.speed_mps, factors))
+                                     (beyond.speed_mps, factors), self.floors if self.floors.any() else None)
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         self.v_mps = decision.v_mps
         if decision.state == "stopped":
@@ -75,7 +77,10 @@ class ControllerCore:
             hint = pr.vertex
             loc = (unc.horizon_loc_sigma_lat_m[j], unc.horizon_loc_sigma_head_rad[j]) \
                 if j < len(unc.horizon_loc_sigma_lat_m) else (0.0, 0.0)
+            model = (unc.horizon_model_sigma_lat_m[j], unc.horizon_model_sigma_head_rad[j]) \
+                if j < len(unc.horizon_model_sigma_lat_m) else (math.nan, math.nan)
             predictions.append(Prediction(j + 1, pr.lateral_m, pr.heading_rad, unc.horizon_sigma_lat_m[j],
                                           unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0,
-                                          *loc, s_m=d.distance_m, v_mps=d.v_mps))
+                                          *loc, s_m=d.distance_m, v_mps=d.v_mps, model_sigma_lat_m=model[0],
+                                          model_sigma_head_rad=model[1]))
         self.calibration.predict(tick, predictions)

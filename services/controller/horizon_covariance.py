@@ -5,7 +5,9 @@ transform (uncertainty.py) along a planned mean sequence.
 The online calibration (calibration.py) widens only what the motion model adds: the localizer's own
 covariance, carried rigidly along the plan, is not the model's to be wrong about. Widening the whole
 spread would, at standstill, multiply the estimate's noise by factors learned from prediction errors
-at speed, and a robot whose corridor is a few estimate-sigmas wide could never start again."""
+at speed, and a robot whose corridor is a few estimate-sigmas wide could never start again. The
+calibration's floors (missed_variance.py) are variances in their own right, lateral and heading, added
+to the model's share or under it, which no slower plan sheds."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -13,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.controller.horizon import HorizonProblem, HorizonStart
+from services.controller.missed_variance import SpreadFloors
 from services.controller.settings import NMPCSettings
 from services.controller.uncertainty import DisturbanceVariance, propagate, route_sigmas, sigma_point_step
 
@@ -25,8 +28,9 @@ def variance_model(gp, s: NMPCSettings) -> DisturbanceVariance:
 
 @dataclass(frozen=True)
 class HorizonCovariance:
-    """This step's covariance model: the disturbance variance, the covariance at the horizon's start, and
-    the online calibration's factors on each step's predicted standard deviations (calibration.py)."""
+    """This step's covariance model: the disturbance variance, the covariance at the horizon's start, the
+    online calibration's factors on each step's predicted standard deviations and its floors on each
+    step's model share of the variance, lateral and heading (calibration.py)."""
     var: DisturbanceVariance
     Sigma0: np.ndarray
     dt: float
@@ -34,10 +38,12 @@ class HorizonCovariance:
     factors: np.ndarray | None = None
     Sigma_loc: np.ndarray = field(default_factory=DEFAULT_START_COV.copy)   # the localizer's, where captured
     captured_xy: tuple[float, float] = (0.0, 0.0)  # where it was captured (route frame)
+    floors: SpreadFloors | None = None
 
     @classmethod
     def at_start(cls, pose_cov: np.ndarray | None, start: HorizonStart, var: DisturbanceVariance, dt: float,
-                 gamma: float, factors: tuple[float, ...] = ()) -> HorizonCovariance:
+                 gamma: float, factors: tuple[float, ...] = (),
+                 floors: SpreadFloors | None = None) -> HorizonCovariance:
         """The localizer's covariance, carried through the periods of localization delay (eq. 7.12)."""
         Sigma = np.array(pose_cov, dtype=float) if pose_cov is not None else DEFAULT_START_COV.copy()
         loc, at = Sigma.copy(), (start.delay[0].pose if start.delay else start.x0)
@@ -46,7 +52,7 @@ class HorizonCovariance:
             for p, g, vg in zip(start.delay, G, V):
                 Sigma = sigma_point_step(p.pose, Sigma, g, vg, p.v_mps, p.w_radps, dt, gamma)
         return cls(var, Sigma, dt, gamma, np.asarray(factors, dtype=float) if factors else None, loc,
-                   (float(at[0]), float(at[1])))
+                   (float(at[0]), float(at[1])), floors if floors is not None and floors.any() else None)
 
     def localizer_part(self, X: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Route-frame standard deviations (K, 3) of x_1..x_K (measured along the route's `direction` (K,))
@@ -62,27 +68,54 @@ class HorizonCovariance:
 
     def _kappa(self, n_rows: int) -> np.ndarray:
         k = np.ones(n_rows)
-        n = min(n_rows, len(self.factors))
-        k[:n] = np.square(self.factors[:n])
+        if self.factors is not None:
+            n = min(n_rows, len(self.factors))
+            k[:n] = np.square(self.factors[:n])
         return k
+
+    def _floors(self, n_rows: int) -> tuple[np.ndarray, np.ndarray]:
+        """(n_rows, 3) each: the calibration's added variance and least share per step, none along the route."""
+        added, least = np.zeros((n_rows, 3)), np.zeros((n_rows, 3))
+        if self.floors is not None:
+            n = min(n_rows, len(self.floors.added))
+            added[:n, 1:], least[:n, 1:] = self.floors.added[:n], self.floors.least[:n]
+        return added, least
+
+    def _model_var(self, sig: np.ndarray, loc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the localizer's variance, the model's, the model's widened: the largest of kappa_j share, share
+        plus the added floor, and the least share)."""
+        loc2 = np.minimum(np.square(loc), np.square(sig))
+        share = np.square(sig) - loc2
+        k = self._kappa(len(sig)).reshape(-1, 1)
+        added, least = self._floors(len(sig))
+        return loc2, share, np.maximum(np.maximum(k * share, share + added), least)
 
     def widened(self, sig: np.ndarray, loc: np.ndarray) -> np.ndarray:
         """Per-step standard deviations (K, 3): the model's share of the variance, sig^2 - loc^2, times the
-        calibration's factor kappa_j, plus the localizer's share `loc` as it is."""
-        if self.factors is None:
+        calibration's factor kappa_j or plus its added floor, whichever is larger, and at least its least
+        share; plus the localizer's share `loc` as it is."""
+        if self.factors is None and self.floors is None:
             return sig
-        k = self._kappa(len(sig)).reshape(-1, 1)
-        loc2 = np.minimum(np.square(loc), np.square(sig))
-        return np.sqrt(loc2 + k * (np.square(sig) - loc2))
+        loc2, _, wide = self._model_var(sig, loc)
+        return np.sqrt(loc2 + wide)
+
+    def least(self, loc: np.ndarray) -> np.ndarray:
+        """(K, 3): the least standard deviations at any speed: the localizer's share `loc` and the
+        calibration's floors, which no slower plan sheds."""
+        added, least = self._floors(len(loc))
+        return np.sqrt(np.square(loc) + np.maximum(added, least))
 
     def widened_derivative(self, dsig: np.ndarray, sig: np.ndarray, loc: np.ndarray) -> np.ndarray:
         """The derivative (rows j) of the widened lateral sigma from that of the model's, `dsig`, the
-        localizer's share held fixed."""
-        if self.factors is None:
+        localizer's share and the floors held fixed."""
+        if self.factors is None and self.floors is None:
             return dsig
+        loc2, share, wide = self._model_var(sig, loc)
         k = self._kappa(len(sig))
-        wide = self.widened(sig, loc)[:, 1]
-        return dsig * (k * sig[:, 1] / np.maximum(wide, 1e-12)).reshape(-1, 1)
+        added, least = self._floors(len(sig))
+        slope = np.where(k * share[:, 1] >= share[:, 1] + added[:, 1], k, 1.0)
+        slope = np.where(wide[:, 1] > least[:, 1], slope, 0.0)     # at the least share: no slope
+        return dsig * (slope * sig[:, 1] / np.maximum(np.sqrt(loc2[:, 1] + wide[:, 1]), 1e-12)).reshape(-1, 1)
 
     def along(self, problem: HorizonProblem, X: np.ndarray, A: np.ndarray, v: np.ndarray,
               w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -13,6 +13,7 @@ import numpy as np
 from common.path import Path
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.missed_variance import SpreadFloors
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,9 @@ class StepContext:
     # (calibration.Beyond; empty: the same)
     spread_factors_beyond: tuple[float, ...] = ()
     spread_beyond_mps: float = float("inf")
+    # the calibration's floors on each horizon step's model share of the predicted variance, lateral and
+    # heading (calibration.floors); None: none
+    spread_floors: SpreadFloors | None = None
     loc_age_s: float = 0.0               # how old `pose` is (now - its capture): what the feedback lags by
 
 
@@ -82,6 +86,9 @@ class UncertaintyReport:
     # the calibration's factors on the variance the spreads were widened by, where not the step's
     # spread_factors (RC: a rung faster than the place's passes vouch for; empty: those)
     spread_kappa: tuple[float, ...] = ()
+    # the spreads as the model gave them, before the calibration widened them (empty: not reported)
+    horizon_model_sigma_lat_m: tuple[float, ...] = ()
+    horizon_model_sigma_head_rad: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -45,10 +45,13 @@ from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
 
-def _horizon_sigmas(sig: np.ndarray, loc: np.ndarray) -> dict:
-    """UncertaintyReport's per-step spreads from route-frame sigmas (K, 3) and their localizer's share."""
+def _horizon_sigmas(sig: np.ndarray, loc: np.ndarray, raw: np.ndarray) -> dict:
+    """UncertaintyReport's per-step spreads from route-frame sigmas (K, 3) as widened, their localizer's
+    share and as the model gave them."""
     return {"horizon_sigma_lat_m": tuple(float(x) for x in sig[:, 1]),
             "horizon_sigma_head_rad": tuple(float(x) for x in sig[:, 2]),
+            "horizon_model_sigma_lat_m": tuple(float(x) for x in raw[:, 1]),
+            "horizon_model_sigma_head_rad": tuple(float(x) for x in raw[:, 2]),
             "horizon_loc_sigma_lat_m": tuple(float(x) for x in loc[:, 1]),
             "horizon_loc_sigma_head_rad": tuple(float(x) for x in loc[:, 2])}
 
@@ -97,7 +100,7 @@ class MMLBNMPCLaw:
         gp = self.model_for(ctx)
         problem, w_limit = build_problem(ctx, s, self.dt, gp)
         u0 = self._warm_start(problem, w_limit)
-        sig, loc = self._sigmas(ctx, problem, gp, u0)
+        sig, loc, raw = self._sigmas(ctx, problem, gp, u0)
         bound = s.mm_sigmas * sig                                   # (K, 3)
         if self._qp is None or self._qp.K != problem.K:
             self._qp = MinMaxQP(problem.K)
@@ -109,7 +112,7 @@ class MMLBNMPCLaw:
         return LawResult(float(res.u[0]), predicted=X[1:],
                          solve=SolveReport(res.cost, res.iterations, res.evaluations, res.status, gp is not None),
                          uncertainty=UncertaintyReport(float(sig[:, 1].max()), float(sig[:, 2].max()),
-                                                       worst_case=worst_case, **_horizon_sigmas(sig, loc)),
+                                                       worst_case=worst_case, **_horizon_sigmas(sig, loc, raw)),
                          note=held_note(problem.model))
 
     def _warm_start(self, problem: HorizonProblem, w_limit: np.ndarray) -> np.ndarray:
@@ -118,16 +121,18 @@ class MMLBNMPCLaw:
         prev = self.last_plan.w
         return np.clip(np.concatenate([prev[1:], prev[-1:]]), -w_limit, w_limit)
 
-    def _sigmas(self, ctx: StepContext, problem: HorizonProblem, gp, u0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Route-frame sigmas (K, 3) along the warm start's plan, widened, and their localizer's share:
-        computed once per step (the covariance moves little within a solve)."""
+    def _sigmas(self, ctx: StepContext, problem: HorizonProblem, gp,
+                u0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Route-frame sigmas (K, 3) along the warm start's plan, widened, their localizer's share and as
+        the model gave them: computed once per step (the covariance moves little within a solve)."""
         s = self.settings
         A = np.empty((problem.K, 9))
         X0, _ = problem.rollout(u0, with_jac=True, a_out=A)     # the solver's first linearization reuses it
         cov = HorizonCovariance.at_start(ctx.pose_cov, problem.start, variance_model(gp, s), self.dt, s.sp_gamma,
-                                         ctx.spread_factors)
+                                         ctx.spread_factors, ctx.spread_floors)
         loc = cov.localizer_part(X0, problem.ref.direction_rad[1:])
-        return cov.widened(cov.along(problem, X0, A, problem.v, u0)[1], loc), loc
+        raw = cov.along(problem, X0, A, problem.v, u0)[1]
+        return cov.widened(raw, loc), loc, raw
 
 
 @dataclass(frozen=True)
@@ -161,7 +166,7 @@ class RCLBNMPCLaw:
         gp = self.model_for(dataclasses.replace(ctx, v_mps=self._window_speed(ctx)))
         base, _ = build_problem(ctx, s, dt, gp)
         cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(gp, s), dt, s.sp_gamma,
-                                         ctx.spread_factors)
+                                         ctx.spread_factors, ctx.spread_floors)
         v, w, v_max = self._warm_start(ctx, base)
         problem = base.following(v)
         lo_lat, hi_lat, head_lim = corridor.at(problem.ref.s_m[1:])
@@ -189,7 +194,7 @@ class RCLBNMPCLaw:
                              uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
         if rung is not None:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
-                                      sig_floor=np.minimum(rung.sig_loc[:, 1], sig[:, 1]))
+                                      sig_floor=np.minimum(rung.cov.least(rung.sig_loc)[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
         return self._report(nlp, start, result, gp is not None, rung, cov)
 
@@ -261,8 +266,9 @@ class RCLBNMPCLaw:
         return self._qp
 
     @staticmethod
-    def _plan_spread(nlp: CorridorNLP, it: Iterate, cov: HorizonCovariance) -> tuple[np.ndarray, np.ndarray]:
-        """(widened sigmas, the localizer's share) of the plan as commanded, propagated along its own poses
+    def _plan_spread(nlp: CorridorNLP, it: Iterate,
+                     cov: HorizonCovariance) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(widened sigmas, the localizer's share, the model's) of the plan as commanded, along its own poses
         and speeds. The SQP's sigma is a first-order line in the speeds floored at the localizer's share:
         reported as the prediction, the model's share would read 0 at the floor, and the calibration would
         take any error beyond the localizer's 3 sigma for an infinite need."""
@@ -270,13 +276,13 @@ class RCLBNMPCLaw:
         A = np.empty((q.K, 9))
         X = q.rollout(it.w, False, v=it.v, a_out=A)[0]
         loc = cov.localizer_part(X, q.ref.direction_rad[1:])
-        return cov.widened(cov.along(q, X, A, it.v, it.w)[1], loc), loc
+        raw = cov.along(q, X, A, it.v, it.w)[1]
+        return cov.widened(raw, loc), loc, raw
 
     def _report(self, nlp: CorridorNLP, start: Iterate, result: CorridorResult, learned: bool,
                 rung: Rung | None, cov: HorizonCovariance) -> LawResult:
         it = result.iterate
-        sig, loc = (np.zeros_like(it.sig), np.zeros_like(it.sig)) if rung is None else \
-            self._plan_spread(nlp, it, cov)
+        sig, loc, raw = (np.zeros_like(it.sig),) * 3 if rung is None else self._plan_spread(nlp, it, cov)
         cost = 0.5 * float(it.r @ it.r)
         self.last_step = CorridorStep(nlp, start, result)
         self.last_plan = Plan(it.w, it.X, it.reference.poses, cost, result.iterations, result.status == "converged")
@@ -284,6 +290,6 @@ class RCLBNMPCLaw:
                          solve=SolveReport(cost, result.iterations, result.evaluations, result.status, learned),
                          uncertainty=UncertaintyReport(float(sig[:, 1].max()), float(sig[:, 2].max()),
                                                        speed_scale=1.0 if rung is None else rung.scale,
-                                                       violation=it.violation, **_horizon_sigmas(sig, loc),
+                                                       violation=it.violation, **_horizon_sigmas(sig, loc, raw),
                                                        spread_kappa=_kappa(cov)),
                          note=held_note(nlp.problem.model))

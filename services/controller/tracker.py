@@ -4,7 +4,9 @@ It owns everything that is not the steering law itself: waiting for the first es
 last command through a short dropout, stopping when localization is stale or lost, the speed profile
 (scheduled speed, robot limits, a gentle stop into the end of the route), angular-rate limits
 (actuator and, for an Ackermann robot, the steering limit), the initial-condition smoothing of
-eq. 3.16, and the end of the route. The law (laws.py) chooses w.
+eq. 3.16, and the end of the route. The law (laws.py) chooses w. Every stop it makes while the robot
+still rolls, a law's safety stop and the end of the route alike, brakes while steering along the route
+(_brake).
 """
 from __future__ import annotations
 
@@ -21,12 +23,14 @@ from services.controller.actuator import ActuatorLag
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
+from services.controller.missed_variance import SpreadFloors
 
 LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
 STOP_DECEL_MPS2 = 0.4    # the gentle deceleration into the end of the route
 REST_MPS = 0.03          # a braking robot whose drive the lag model puts below this has stopped
 CREEP_MPS = 0.01         # what a braking Ackermann is commanded while it rolls: its steering needs a speed
 BRAKE_CURVATURE_PER_M = 0.5   # the most a stop steers beyond the route's own curvature
+END_OF_ROUTE = "end of route reached"
 
 # what a law may fail with numerically (ArithmeticError: FloatingPointError, OverflowError, ZeroDivisionError)
 NUMERICAL_FAILURES = (ArithmeticError, np.linalg.LinAlgError)
@@ -119,11 +123,13 @@ class PathTracker:
     def step(self, now_s: float, loc: LocState | None, tick: int | None = None,
              command_at: Callable[[int], tuple[float, float] | None] | None = None,
              spread_factors: tuple[float, ...] = (),
-             spread_beyond: tuple[float, tuple[float, ...]] = (float("inf"), ())) -> Decision:
+             spread_beyond: tuple[float, tuple[float, ...]] = (float("inf"), ()),
+             spread_floors: SpreadFloors | None = None) -> Decision:
         """`tick`: the robot tick this command will be applied at; `command_at(t)`: the command applied
         at tick t. With both, the law learns which commands were applied since the estimate's capture.
         `spread_factors`: the online calibration's factors on the predicted spread per step (calibration.py);
-        `spread_beyond`: from which speed a plan outruns the place's passes, and the factors then."""
+        `spread_beyond`: from which speed a plan outruns the place's passes, and the factors then;
+        `spread_floors`: its floors per step under the model's share of the variance (lateral, heading)."""
         if loc is not None and loc.has_pose:
             self._last_ok = loc
         last = self._last_ok
@@ -137,9 +143,10 @@ class PathTracker:
             return Decision(0.0, 0.0, state, reason, last.vertex, dist, lat, head, age)
 
         if self.finished:
-            return stop("finished", "end of route reached")
+            return self._finish(last, age, loc, tick, command_at) or stop("finished", END_OF_ROUTE)
         if self.halted:
-            return self._brake(last, age, loc, self._drive_speed(tick, command_at)) or stop("stopped", self.halted)
+            return self._brake(last, age, loc, self._drive_speed(tick, command_at), "stopping",
+                               f"{self.halted}: braking along the route") or stop("stopped", self.halted)
         if last is None:
             return stop("waiting", f"no localization yet ({loc.status if loc else 'nothing received'})")
         if loc is not None and loc.status == "lost":
@@ -157,7 +164,7 @@ class PathTracker:
 
         if dist >= self.path.length_m or (vertex == len(self.path) - 1 and last.T_vertex_robot[0] >= 0.0):
             self.finished = True
-            return stop("finished", "end of route reached")
+            return self._finish(last, age, loc, tick, command_at) or stop("finished", END_OF_ROUTE)
 
         prev_pose = None
         if self._prev_pose is not None and self._prev_pose[0] == last.capture_tick - 1:
@@ -181,11 +188,12 @@ class PathTracker:
                           delayed_cmds=delayed, cmd_before_capture=before, xi_capture=xi_capture, xi_now=xi_now,
                           pose_cov=self.route_cov(last), corridor=self.corridor, v_max_mps=self.limits.v_max_mps,
                           spread_factors=spread_factors, spread_beyond_mps=spread_beyond[0],
-                          spread_factors_beyond=spread_beyond[1], loc_age_s=age)
+                          spread_factors_beyond=spread_beyond[1], spread_floors=spread_floors, loc_age_s=age)
         res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
-            return self._brake(last, age, loc, self._drive_speed(tick, command_at)) or stop("stopped", res.stop_reason)
+            return self._brake(last, age, loc, self._drive_speed(tick, command_at), "stopping",
+                               f"{self.halted}: braking along the route") or stop("stopped", res.stop_reason)
         if res.v_mps is not None and math.isfinite(res.v_mps):
             v = max(0.0, min(res.v_mps, self.limits.v_max_mps))
         w_limit = self.limits.w_limit(v)
@@ -200,10 +208,18 @@ class PathTracker:
             return self.lag.state_before(tick, command_at)[0]
         return 0.0
 
-    def _brake(self, last: LocState | None, age: float, loc: LocState | None, v_drive: float) -> Decision | None:
-        """A law's safety stop as a manoeuvre that keeps the robot inside: brake at the robot's limit while
-        steering along the route, not v = w = 0, which drops the counter-steer and lets the robot coast
-        off. The steering holds until the drive has stopped (`v_drive`, by the lag model), not the
+    def _finish(self, last: LocState | None, age: float, loc: LocState | None, tick: int | None,
+                command_at: Callable[[int], tuple[float, float] | None] | None) -> Decision | None:
+        """The end of the route as the same manoeuvre as a safety stop: a heavy robot's drive still rolls
+        when the estimate passes the last vertex (its lag), and v = w = 0 would let it coast off turning
+        as its last commands left it."""
+        return self._brake(last, age, loc, self._drive_speed(tick, command_at), "finished",
+                           f"{END_OF_ROUTE}: braking along the route")
+
+    def _brake(self, last: LocState | None, age: float, loc: LocState | None, v_drive: float, state: str,
+               reason: str) -> Decision | None:
+        """A stop as a manoeuvre that keeps the robot inside: brake at the robot's limit while steering
+        along the route, not v = w = 0, which drops the counter-steer and lets the robot coast off. The steering holds until the drive has stopped (`v_drive`, by the lag model), not the
         command: a heavy robot's drive lags its command by a second. It steers a curvature (feedback
         linearization at the rolling speed, within BRAKE_CURVATURE_PER_M of the route's), turned into a
         turn rate at that speed: FL's turn rate grows like 1 / v and would spin a slow skid-steer in
@@ -226,7 +242,7 @@ class PathTracker:
         else:
             w = max(-self.limits.w_max_radps, min(self.limits.w_max_radps, c * rolling))
         self._last_cmd = (v, w)
-        return Decision(v, w, "stopping", f"{self.halted}: braking along the route", last.vertex, dist, lat, head, age)
+        return Decision(v, w, state, reason, last.vertex, dist, lat, head, age)
 
     def _run_law(self, ctx: StepContext) -> tuple[LawResult, str]:
         """The law's result, or feedback linearization for this step when the law failed numerically (a
