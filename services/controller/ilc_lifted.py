@@ -173,7 +173,7 @@ def norm_optimal_change(w_ff: np.ndarray, e_lat: np.ndarray, e_head: np.ndarray,
     rhs -= wt.rho_diff * scale * (np.concatenate([[0.0], dw_prev]) - np.concatenate([dw_prev, [0.0]]))
     u = H.shape[0] - 1
     ab = np.zeros((u + 1, free))                  # solveh_banded's upper form: ab[u - off, j + off]
-    for off in range(u + 1):
+    for off in range(min(u + 1, free)):           # a trial that saw fewer vertices than the band is wide
         ab[u - off, off:] = H[off, :free - off]
     dw = np.zeros(n)
     dw[:free] = solveh_banded(ab, rhs[:free])
