@@ -42,10 +42,6 @@ class SpreadFloors:
     added: np.ndarray        # (K, 2)
     least: np.ndarray        # (K, 2)
 
-    @classmethod
-    def none(cls, horizon: int) -> "SpreadFloors":
-        return cls(np.zeros((horizon, CHANNELS)), np.zeros((horizon, CHANNELS)))
-
     def any(self) -> bool:
         return bool(self.added.any() or self.least.any())
 

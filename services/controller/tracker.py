@@ -145,8 +145,7 @@ class PathTracker:
         if self.finished:
             return self._finish(last, age, loc, tick, command_at) or stop("finished", END_OF_ROUTE)
         if self.halted:
-            return self._brake(last, age, loc, self._drive_speed(tick, command_at), "stopping",
-                               f"{self.halted}: braking along the route") or stop("stopped", self.halted)
+            return self._halt(last, age, loc, tick, command_at) or stop("stopped", self.halted)
         if last is None:
             return stop("waiting", f"no localization yet ({loc.status if loc else 'nothing received'})")
         if loc is not None and loc.status == "lost":
@@ -192,8 +191,7 @@ class PathTracker:
         res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
-            return self._brake(last, age, loc, self._drive_speed(tick, command_at), "stopping",
-                               f"{self.halted}: braking along the route") or stop("stopped", res.stop_reason)
+            return self._halt(last, age, loc, tick, command_at) or stop("stopped", res.stop_reason)
         if res.v_mps is not None and math.isfinite(res.v_mps):
             v = max(0.0, min(res.v_mps, self.limits.v_max_mps))
         w_limit = self.limits.w_limit(v)
@@ -216,11 +214,18 @@ class PathTracker:
         return self._brake(last, age, loc, self._drive_speed(tick, command_at), "finished",
                            f"{END_OF_ROUTE}: braking along the route")
 
+    def _halt(self, last: LocState | None, age: float, loc: LocState | None, tick: int | None,
+              command_at: Callable[[int], tuple[float, float] | None] | None) -> Decision | None:
+        """A law's safety stop (`halted`), braking along the route."""
+        return self._brake(last, age, loc, self._drive_speed(tick, command_at), "stopping",
+                           f"{self.halted}: braking along the route")
+
     def _brake(self, last: LocState | None, age: float, loc: LocState | None, v_drive: float, state: str,
                reason: str) -> Decision | None:
         """A stop as a manoeuvre that keeps the robot inside: brake at the robot's limit while steering
-        along the route, not v = w = 0, which drops the counter-steer and lets the robot coast off. The steering holds until the drive has stopped (`v_drive`, by the lag model), not the
-        command: a heavy robot's drive lags its command by a second. It steers a curvature (feedback
+        along the route, not v = w = 0, which drops the counter-steer and lets the robot coast off. The
+        steering holds until the drive has stopped (`v_drive`, by the lag model), not the command: a
+        heavy robot's drive lags its command by a second. It steers a curvature (feedback
         linearization at the rolling speed, within BRAKE_CURVATURE_PER_M of the route's), turned into a
         turn rate at that speed: FL's turn rate grows like 1 / v and would spin a slow skid-steer in
         place. An Ackermann robot steers by the ratio w / v of its command (eq. 5.27), so while it rolls
