@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 HEADING = 2                                      # output dimension of g (G_NAMES dtheta_rad)
-W_ACT, V_CMD, W_CMD, W_CMD_PREV = 4, 5, 6, 8     # inputs of a (services/controller/experience.py A_NAMES)
+S, W_ACT, V_CMD, W_CMD, W_CMD_PREV = 0, 4, 5, 6, 8     # inputs of a (services/controller/experience.py A_NAMES)
 
 
 def kept_turn_share(dg_head_per_s: np.ndarray, turn_gain: float) -> float:

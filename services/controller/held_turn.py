@@ -8,27 +8,38 @@ slope in trial 2: at the plan's inputs the heading model kept -6 % of the nomina
 step that lowered its merit ("stalled") and held -0.28 rad/s while the heading error grew from 4 to 16.5
 deg, and the robot stopped outside its corridor.
 
-So every step the NMPC laws ask the same of the model at the inputs of the reference's rollout. Where
-any keeps less than `min_share`, the step plans with the heading output's mean held at the turn rate
-commanded last period: its value there (what the place does to the heading now), without a slope in
-the command, so the nominal model's turn authority is whole. The other outputs and every variance stay
-the model's own.
+So every step the NMPC laws ask the same of the model at the inputs of the reference's rollout and of
+the warm start's (the previous plan shifted: where the solver starts and usually ends, often at the turn
+limit, where closed-loop data confound the command with the terrain most). Where any keeps less than
+`min_share`, the step plans with the heading output's mean held at the route's own turn rate (its
+curvature times the commanded speed, through the drive's turn gain): the model's value there (what the
+place does to a robot that follows the route), without a slope in the command, so the nominal model's
+turn authority is whole. The other outputs and every variance stay the model's own.
+
+Held at the last command instead, the mean there is what the data saw whenever the controller was last
+saturated: the terrain turning the robot the other way. The plan then needs the same saturated command
+to hold its heading, and keeps it while the real turn swings past (bench seed 7583, LB-NMPC MATS
+s270925663, a rough patch on a straight: +0.32 rad/s held 2 s into a +36 deg heading error, 2.5 m off).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from common.turn_share import HEADING, W_CMD, kept_turn_share
+from common.turn_share import HEADING, S, V_CMD, W_CMD, kept_turn_share
 from services.controller.horizon import DisturbanceModel, HorizonProblem
 
 
 @dataclass(frozen=True)
 class HeldTurn:
-    """`model` with its heading mean taken at the commanded turn rate `w_cmd_radps`."""
+    """`model` with its heading mean taken at the route's turn rate kappa(s) v_cmd / turn_gain, kappa
+    interpolated over the knots (s_m, kappa) of the problem's reference."""
     model: DisturbanceModel
-    w_cmd_radps: float
+    s_m: np.ndarray
+    kappa: np.ndarray
+    turn_gain: float
     kept_share: float          # the least share of the nominal turn the model kept at the plan's inputs
 
     @property
@@ -37,14 +48,24 @@ class HeldTurn:
 
     def _held(self, A: np.ndarray) -> np.ndarray:
         held = np.array(A, dtype=float)
-        held[..., W_CMD] = self.w_cmd_radps
+        held[..., W_CMD] = np.interp(held[..., S], self.s_m, self.kappa) * held[..., V_CMD] / self.turn_gain
         return held
+
+    def _kappa_slope(self, s: float) -> float:
+        i = int(np.searchsorted(self.s_m, s, side="right"))
+        if i == 0 or i == len(self.s_m):
+            return 0.0
+        return float((self.kappa[i] - self.kappa[i - 1]) / (self.s_m[i] - self.s_m[i - 1]))
 
     def mean_and_grad(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         g, dg = self.model.mean_and_grad(a)
-        gh, dgh = self.model.mean_and_grad(self._held(a))
+        a_h = self._held(a)
+        gh, dgh = self.model.mean_and_grad(a_h)
         g, dg = g.copy(), dg.copy()
         g[HEADING], dg[HEADING] = gh[HEADING], dgh[HEADING]
+        dw = dgh[HEADING, W_CMD] / self.turn_gain   # the held turn rate moves with the place and the speed
+        dg[HEADING, S] += dw * self._kappa_slope(float(a[S])) * a[V_CMD]
+        dg[HEADING, V_CMD] += dw * float(np.interp(a[S], self.s_m, self.kappa))
         dg[HEADING, W_CMD] = 0.0
         return g, dg
 
@@ -71,7 +92,7 @@ def held_note(model: DisturbanceModel | None) -> str:
     if not isinstance(model, HeldTurn):
         return ""
     return (f"learned heading model kept {model.kept_share:+.0%} of the turn at the plan: "
-            f"held at the command {model.w_cmd_radps:+.2f} rad/s")
+            f"held at the route's turn rate")
 
 
 def least_kept_share(gradients: np.ndarray, turn_gain: float, dt: float) -> float:
@@ -79,11 +100,18 @@ def least_kept_share(gradients: np.ndarray, turn_gain: float, dt: float) -> floa
     return min(kept_turn_share(dg[HEADING] / dt, turn_gain) for dg in gradients)
 
 
-def hold_turn_where_cancelled(problem: HorizonProblem, w_cmd_radps: float, min_share: float) -> DisturbanceModel | None:
-    """The problem's model, held at `w_cmd_radps` (HeldTurn) where it keeps less than `min_share` of the
-    nominal turn at the inputs of the reference's rollout; itself otherwise (and with no model or check)."""
+def hold_turn_where_cancelled(problem: HorizonProblem, min_share: float,
+                              probes: Sequence[np.ndarray] = ()) -> DisturbanceModel | None:
+    """The problem's model, held at the route's turn rate (HeldTurn) where it keeps less than `min_share` of the
+    nominal turn at the inputs of the reference's rollout or of any probe's (turn rates (K,) at the
+    profile's speeds); itself otherwise (and with no model or check)."""
     model = problem.model
     if model is None or min_share <= 0.0:
         return model
-    share = least_kept_share(problem.model_gradients(problem.w_ref), problem.turn_gain, problem.dt)
-    return model if share >= min_share else HeldTurn(model, float(w_cmd_radps), share)
+    rollouts = [problem.w_ref, *(w for w in probes if len(w) == problem.K)]
+    share = min(least_kept_share(problem.model_gradients(w), problem.turn_gain, problem.dt) for w in rollouts)
+    if share >= min_share:
+        return model
+    ref = problem.ref
+    return HeldTurn(model, np.asarray(ref.s_m[:-1], dtype=float), np.asarray(ref.kappa, dtype=float),
+                    problem.turn_gain, share)

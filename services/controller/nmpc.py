@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -116,10 +116,16 @@ def _profile(ctx: StepContext, s0: float, K: int, dt: float, lag: ActuatorLag) -
     return v, s_d
 
 
-def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
-                  model: DisturbanceModel | None) -> tuple[HorizonProblem, np.ndarray]:
+def shifted(w: np.ndarray) -> np.ndarray:
+    """A plan's turn rates one period on: the next step's warm start."""
+    return np.concatenate([w[1:], w[-1:]])
+
+
+def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float, model: DisturbanceModel | None,
+                  probes: Sequence[np.ndarray] = ()) -> tuple[HorizonProblem, np.ndarray]:
     """This step's problem: start (carried through the delay), reference where the speed profile takes
-    the robot, the route's turn rates; returns (problem, |w| bound per step)."""
+    the robot, the route's turn rates; returns (problem, |w| bound per step). The model's turn is
+    checked at the reference's rollout and the `probes`' (held_turn.py)."""
     v_prev = _measured_velocity(ctx, dt)
     x0, s0, u_prev, delay = np.array(ctx.pose, dtype=float), ctx.s_m, ctx.prev_cmd, ()
     lag = settings.lag(dt)
@@ -134,7 +140,7 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float,
                                                     lag.turn_gain))
     start = HorizonStart(x0=x0, v_prev_act=v_prev, u_prev=u_prev, xi0=ctx.xi_now, delay=delay)
     problem = HorizonProblem(start, ref, v, w_ref, dt, settings, model, ctx.path, lag)
-    held = hold_turn_where_cancelled(problem, ctx.prev_cmd[1], settings.min_turn_share)
+    held = hold_turn_where_cancelled(problem, settings.min_turn_share, probes)
     if held is not model:
         problem = HorizonProblem(start, ref, v, w_ref, dt, settings, held, ctx.path, lag)
     return problem, np.array([ctx.w_limit_at(vj) for vj in v])
@@ -164,15 +170,13 @@ class LBNMPCLaw:
 
     def warm_start(self, problem: HorizonProblem) -> np.ndarray:
         """The previous solution shifted by one period, or the route's own turn rates."""
-        if self.last_plan is None:
-            return problem.w_ref.copy()
-        prev = self.last_plan.w
-        return np.concatenate([prev[1:], prev[-1:]])
+        return problem.w_ref.copy() if self.last_plan is None else shifted(self.last_plan.w)
 
     def angular(self, ctx: StepContext) -> LawResult:
         s = self.settings
         model = self.model_for(ctx)
-        problem, w_limit = build_problem(ctx, s, self.dt, model)
+        probes = () if self.last_plan is None else (shifted(self.last_plan.w),)
+        problem, w_limit = build_problem(ctx, s, self.dt, model, probes)
         w0 = self.warm_start(problem)
         res = gauss_newton(problem.residual, w0, -w_limit, w_limit, max_iter=s.max_iter, tol=s.tol,
                            max_evals=s.max_evals)

@@ -38,7 +38,7 @@ from services.controller.horizon import HorizonProblem
 from services.controller.horizon_covariance import HorizonCovariance, variance_model
 from services.controller.laws import LawResult, SolveReport, StepContext, UncertaintyReport
 from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
-from services.controller.nmpc import Plan, build_problem, crab_offsets
+from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
 from services.controller.speed_ladder import Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
@@ -98,7 +98,8 @@ class MMLBNMPCLaw:
     def angular(self, ctx: StepContext) -> LawResult:
         s = self.settings
         gp = self.model_for(ctx)
-        problem, w_limit = build_problem(ctx, s, self.dt, gp)
+        probes = () if self.last_plan is None else (shifted(self.last_plan.w),)
+        problem, w_limit = build_problem(ctx, s, self.dt, gp, probes)
         u0 = self._warm_start(problem, w_limit)
         sig, loc, raw = self._sigmas(ctx, problem, gp, u0)
         bound = s.mm_sigmas * sig                                   # (K, 3)
@@ -118,8 +119,7 @@ class MMLBNMPCLaw:
     def _warm_start(self, problem: HorizonProblem, w_limit: np.ndarray) -> np.ndarray:
         if self.last_plan is None:
             return np.clip(problem.w_ref, -w_limit, w_limit)
-        prev = self.last_plan.w
-        return np.clip(np.concatenate([prev[1:], prev[-1:]]), -w_limit, w_limit)
+        return np.clip(shifted(self.last_plan.w), -w_limit, w_limit)
 
     def _sigmas(self, ctx: StepContext, problem: HorizonProblem, gp,
                 u0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -164,7 +164,8 @@ class RCLBNMPCLaw:
         if why:
             return LawResult(0.0, v_mps=0.0, stop_reason=f"{why}: stopped")
         gp = self.model_for(dataclasses.replace(ctx, v_mps=self._window_speed(ctx)))
-        base, _ = build_problem(ctx, s, dt, gp)
+        probes = () if self.last_plan is None else (shifted(self.last_step.result.iterate.w),)
+        base, _ = build_problem(ctx, s, dt, gp, probes)
         cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(gp, s), dt, s.sp_gamma,
                                          ctx.spread_factors, ctx.spread_floors)
         v, w, v_max = self._warm_start(ctx, base)
@@ -219,8 +220,7 @@ class RCLBNMPCLaw:
         if self.last_plan is None:
             return base.v.copy(), base.w_ref.copy(), v_max
         it = self.last_step.result.iterate
-        v = np.clip(np.concatenate([it.v[1:], it.v[-1:]]), s.v_min_mps, v_max)
-        return v, np.concatenate([it.w[1:], it.w[-1:]]), v_max
+        return np.clip(shifted(it.v), s.v_min_mps, v_max), shifted(it.w), v_max
 
     def _band_cap(self, lo_lat: np.ndarray, hi_lat: np.ndarray, head_lim: np.ndarray) -> np.ndarray:
         """The most alpha * sigma may tighten each limit: beyond the first step the band keeps
