@@ -100,18 +100,28 @@ def least_kept_share(gradients: np.ndarray, turn_gain: float, dt: float) -> floa
     return min(kept_turn_share(dg[HEADING] / dt, turn_gain) for dg in gradients)
 
 
-def hold_turn_where_cancelled(problem: HorizonProblem, min_share: float,
-                              probes: Sequence[np.ndarray] = ()) -> DisturbanceModel | None:
-    """The problem's model, held at the route's turn rate (HeldTurn) where it keeps less than `min_share` of the
-    nominal turn at the inputs of the reference's rollout or of any probe's (turn rates (K,) at the
-    profile's speeds); itself otherwise (and with no model or check)."""
-    model = problem.model
-    if model is None or min_share <= 0.0:
-        return model
-    rollouts = [problem.w_ref, *(w for w in probes if len(w) == problem.K)]
-    share = min(least_kept_share(problem.model_gradients(w), problem.turn_gain, problem.dt) for w in rollouts)
-    if share >= min_share:
-        return model
+def least_share_along(problem: HorizonProblem, rollouts: Sequence[np.ndarray]) -> float:
+    """The least share of the nominal turn the problem's model keeps along the rollouts of these turn
+    rates (each (K,), at the profile's speeds; others are skipped)."""
+    shares = [least_kept_share(problem.model_gradients(w), problem.turn_gain, problem.dt)
+              for w in rollouts if len(w) == problem.K]
+    return min(shares, default=np.inf)
+
+
+def held_along(problem: HorizonProblem, share: float) -> HeldTurn:
+    """The problem's model held at the route's turn rate, `share` being the least it kept."""
     ref = problem.ref
-    return HeldTurn(model, np.asarray(ref.s_m[:-1], dtype=float), np.asarray(ref.kappa, dtype=float),
+    return HeldTurn(problem.model, np.asarray(ref.s_m[:-1], dtype=float), np.asarray(ref.kappa, dtype=float),
                     problem.turn_gain, share)
+
+
+def hold_turn_where_cancelled(problem: HorizonProblem, min_share: float,
+                              rollouts: Sequence[np.ndarray]) -> DisturbanceModel | None:
+    """The problem's model, held at the route's turn rate (HeldTurn) where it keeps less than `min_share`
+    of the nominal turn at the inputs of any of the rollouts (turn rates (K,) at the profile's speeds);
+    itself otherwise (and with no model, no check or a model held already)."""
+    model = problem.model
+    if model is None or min_share <= 0.0 or isinstance(model, HeldTurn):
+        return model
+    share = least_share_along(problem, rollouts)
+    return model if share >= min_share else held_along(problem, share)

@@ -151,6 +151,13 @@ class HorizonProblem:
         clone._memo = list(self._memo) if keep_memo else []
         return clone
 
+    def with_model(self, model: DisturbanceModel | None) -> HorizonProblem:
+        """This problem planned with another disturbance model (held_turn.py)."""
+        clone = copy.copy(self)
+        clone.model = model
+        clone._memo = []
+        return clone
+
     def following(self, v: np.ndarray) -> HorizonProblem:
         """This problem with the desired poses where speeds v take the robot (C-/RC-LB-NMPC): measured
         against poses placed at the scheduled speed, a plan that slows down would be judged against

@@ -140,9 +140,9 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float, model: Di
                                                     lag.turn_gain))
     start = HorizonStart(x0=x0, v_prev_act=v_prev, u_prev=u_prev, xi0=ctx.xi_now, delay=delay)
     problem = HorizonProblem(start, ref, v, w_ref, dt, settings, model, ctx.path, lag)
-    held = hold_turn_where_cancelled(problem, settings.min_turn_share, probes)
+    held = hold_turn_where_cancelled(problem, settings.min_turn_share, (w_ref, *probes))
     if held is not model:
-        problem = HorizonProblem(start, ref, v, w_ref, dt, settings, held, ctx.path, lag)
+        problem = problem.with_model(held)
     return problem, np.array([ctx.w_limit_at(vj) for vj in v])
 
 
@@ -172,14 +172,22 @@ class LBNMPCLaw:
         """The previous solution shifted by one period, or the route's own turn rates."""
         return problem.w_ref.copy() if self.last_plan is None else shifted(self.last_plan.w)
 
+    def _solve(self, problem: HorizonProblem, w0: np.ndarray, w_limit: np.ndarray):
+        s = self.settings
+        return gauss_newton(problem.residual, w0, -w_limit, w_limit, max_iter=s.max_iter, tol=s.tol,
+                            max_evals=s.max_evals)
+
     def angular(self, ctx: StepContext) -> LawResult:
         s = self.settings
         model = self.model_for(ctx)
         probes = () if self.last_plan is None else (shifted(self.last_plan.w),)
         problem, w_limit = build_problem(ctx, s, self.dt, model, probes)
         w0 = self.warm_start(problem)
-        res = gauss_newton(problem.residual, w0, -w_limit, w_limit, max_iter=s.max_iter, tol=s.tol,
-                           max_evals=s.max_evals)
+        res = self._solve(problem, w0, w_limit)
+        held = hold_turn_where_cancelled(problem, s.min_turn_share, (res.u,))
+        if held is not problem.model:      # the solution went where the model cancels the turn: plan held
+            problem = problem.with_model(held)
+            res = self._solve(problem, w0, w_limit)
         X, _ = problem.rollout(res.u, with_jac=False)
         self.last_plan = Plan(res.u, X, problem.ref.poses, res.cost, res.iterations, res.converged)
         self.last_step = LBNMPCStep(problem, w0, w_limit, res.u)
