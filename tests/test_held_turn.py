@@ -127,3 +127,19 @@ def test_lb_nmpc_turns_back_against_a_heading_error_where_its_learned_model_woul
         w[share] = law.angular(ctx).w_radps
     assert w[0.1] < -0.2
     assert w[0.0] > -0.05
+
+
+def test_lb_nmpc_solves_again_held_where_its_solution_went_where_the_model_cancels_the_turn():
+    """The reference (straight) and the first step's warm start keep 70 % of the turn; the turn needed to
+    correct 12 deg lies beyond 0.25 rad/s, where the model cancels it. Held at the straight route's turn
+    rate (0, where this model's mean is 0) the plan is the nominal model's; unheld, it believes its
+    first turn leaves the heading where it is."""
+    model = SaturatedCancel(0.0)
+    ctx = ctx_at(STRAIGHT, (5.0, 0.0, np.radians(12.0)), v=0.8, prev_cmd=(0.8, 0.0))
+    result = {share: LBNMPCLaw(NMPCSettings(min_turn_share=share), DT, lambda c: model).angular(ctx)
+              for share in (0.0, 0.1)}
+    nominal = LBNMPCLaw(NMPCSettings(), DT).angular(ctx)
+    assert "kept -6% of the turn" in result[0.1].note and result[0.0].note == ""
+    assert result[0.1].w_radps == pytest.approx(nominal.w_radps, abs=1e-6)
+    np.testing.assert_allclose(result[0.1].predicted, nominal.predicted, atol=1e-6)
+    assert result[0.0].predicted[0, 2] > nominal.predicted[0, 2] + 0.05

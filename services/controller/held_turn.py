@@ -1,4 +1,5 @@
-"""A learned heading model that would take the steering away where the controller plans, held at the command.
+"""A learned heading model that would take the steering away where the controller plans, held at the
+route's turn rate.
 
 The store checks each fit at its own data and refits the heading without the turn-rate inputs where more
 than 1 % of them keep less than `min_share` of the nominal turn (services/gp_store/authority.py). A fit
@@ -14,7 +15,8 @@ limit, where closed-loop data confound the command with the terrain most). Where
 `min_share`, the step plans with the heading output's mean held at the route's own turn rate (its
 curvature times the commanded speed, through the drive's turn gain): the model's value there (what the
 place does to a robot that follows the route), without a slope in the command, so the nominal model's
-turn authority is whole. The other outputs and every variance stay the model's own.
+turn authority is whole. The other outputs and every variance stay the model's own. LB-NMPC also checks
+the solution it found and, where that went where the model cancels the turn, solves again held.
 
 Held at the last command instead, the mean there is what the data saw whenever the controller was last
 saturated: the terrain turning the robot the other way. The plan then needs the same saturated command

@@ -47,7 +47,7 @@ class NMPCSettings:
     # open-loop covariance ignores the localization updates still to come)
     min_band_fraction: float = 0.2
     # where the learned heading model keeps less than this share of the nominal turn at a step's planned
-    # inputs, that step plans with its heading mean held at the last command (held_turn.py); 0: never
+    # inputs, that step plans with its heading mean held at the route's turn rate (held_turn.py); 0: never
     min_turn_share: float = 0.1
     process_std: tuple[float, float, float] = (0.0005, 0.001, 0.002)   # floor for what never repeats
     # MM/C/RC: how far an experience vouches at most, as the GP variance's lengthscale caps along the route
