@@ -65,6 +65,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -92,6 +93,7 @@ class Prediction:
     v_mps: float = 0.0                # the speed commanded when it was made
     model_sigma_lat_m: float = math.nan   # the spread as the model gave it, before any widening (NaN:
     model_sigma_head_rad: float = math.nan   # the one `scale` alone widened)
+    from_tick: int = -1               # capture tick of the estimate the plan started from (-1: unknown)
 
 
 @dataclass(frozen=True)
@@ -181,12 +183,13 @@ class SpreadCalibration:
             del self._pending[old]
 
     def realize(self, tick: int, lateral_m: float, heading_rad: float, var_lat_m2: float,
-                var_head_rad2: float) -> list[float]:
+                var_head_rad2: float, jumped: Callable[[int], float] | None = None) -> list[float]:
         """The route errors of the estimate captured at `tick` and its variances across the route and in
-        heading: |z| of every prediction made for it."""
+        heading: |z| of every prediction made for it. `jumped(c0)`: how far the estimate stepped sideways
+        without the robot since capture tick c0 (estimate_jumps.py), taken off the lateral error."""
         out = []
         for p in self._pending.pop(tick, []):
-            d = lateral_m - p.lateral_m
+            d = lateral_m - p.lateral_m - (jumped(p.from_tick) if jumped is not None and p.from_tick >= 0 else 0.0)
             h = math.remainder(heading_rad - p.heading_rad, 2 * math.pi)
             z_lat = d / math.sqrt(p.sigma_lat_m ** 2 + var_lat_m2 + 1e-12)
             z_head = h / math.sqrt(p.sigma_head_rad ** 2 + var_head_rad2 + 1e-12)

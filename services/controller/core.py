@@ -9,6 +9,7 @@ import numpy as np
 from common.messages import LocState
 from common.path import Path
 from services.controller.calibration import Prediction, SpreadCalibration
+from services.controller.estimate_jumps import EstimateJumps
 from services.controller.experience import ExperienceBuilder, Observation
 from services.controller.tracker import Decision, PathTracker
 
@@ -25,6 +26,9 @@ class ControllerCore:
         self.v_mps = 0.0                      # the speed last commanded
         self.kappa = self.calibration.factors_at(None)   # the calibration's factors of the latest step
         self.floors = self.calibration.floors()           # ... and its floors on the model's share
+        self.jumps = EstimateJumps()
+        self._from_tick = -1                  # capture tick of the newest estimate
+        self._deferred: tuple | None = None   # a candidate jump's check, until its verdict
 
     def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, Observation | None]:
         """One control step at robot tick `tick`: the command to apply now, and the disturbance
@@ -35,6 +39,7 @@ class ControllerCore:
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
         if loc is not None and loc.has_pose:
             self._realize(loc)
+            self._from_tick = loc.capture_tick
         self.kappa = self.calibration.factors_at(self.s_m, self.v_mps)
         self.floors = self.calibration.floors()
         beyond = self.calibration.beyond_at(self.s_m, self.v_mps)
@@ -55,13 +60,25 @@ class ControllerCore:
         return tuple(float(f) for f in np.sqrt(self.kappa))
 
     def _realize(self, loc: LocState) -> None:
-        """Check the predictions made for this estimate's capture tick against it."""
+        """Check the predictions made for this estimate's capture tick against it; a candidate jump's
+        (estimate_jumps.py) once the next estimate has told whether it was one."""
         pose, dist, lateral, heading = self.tracker.route_errors(loc)
         self.s_m = dist
         cov = self.tracker.route_cov(loc)
         th = float(self.path.tangent_at(dist))
         n = np.array([-math.sin(th), math.cos(th)])
-        self.calibration.realize(loc.capture_tick, lateral, heading, float(n @ cov[:2, :2] @ n), float(cov[2, 2]))
+        check = (loc.capture_tick, lateral, heading, float(n @ cov[:2, :2] @ n), float(cov[2, 2]))
+        kappa = float(np.interp(dist, self.path.s, self.path.curvature))
+        candidate = self.jumps.add(loc.capture_tick, dist, lateral, heading, kappa)
+        if self._deferred is not None:
+            self._check(*self._deferred)
+        self._deferred = check if candidate else None
+        if not candidate:
+            self._check(*check)
+
+    def _check(self, tick: int, lateral: float, heading: float, var_lat: float, var_head: float) -> None:
+        self.calibration.realize(tick, lateral, heading, var_lat, var_head,
+                                 lambda from_tick: self.jumps.offset_between(from_tick, tick))
 
     def keep_prediction(self, tick: int, d: Decision) -> None:
         """After the command is out: the law's predicted poses x_1..x_K (of ticks tick + 1..K) with their
@@ -82,5 +99,5 @@ class ControllerCore:
             predictions.append(Prediction(j + 1, pr.lateral_m, pr.heading_rad, unc.horizon_sigma_lat_m[j],
                                           unc.horizon_sigma_head_rad[j], float(scales[j]) if j < len(scales) else 1.0,
                                           *loc, s_m=d.distance_m, v_mps=d.v_mps, model_sigma_lat_m=model[0],
-                                          model_sigma_head_rad=model[1]))
+                                          model_sigma_head_rad=model[1], from_tick=self._from_tick))
         self.calibration.predict(tick, predictions)
