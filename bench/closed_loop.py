@@ -91,8 +91,7 @@ class ClosedLoop:
         lat, head, hint, finished, observations = [], [], 0, False, []
         for n in range(max_steps):
             d, obs = core.step(s.stamp_s, s.tick, self.source.on_truth(truth_of(s, trial), "route"))
-            if obs is not None:
-                observations.append(obs)
+            observations += obs
             pr = path.project((s.x, s.y, s.theta), hint)
             hint = pr.vertex
             lat.append(pr.lateral_m)

@@ -80,3 +80,23 @@ def test_a_check_across_a_jump_takes_it_off_and_asks_for_no_widening():
         scales[with_jumps] = cal.scales.copy()
     assert scales[True] == pytest.approx([1.0, 1.0, 1.0])
     assert scales[False][1] > 5.0 and scales[False][2] > 5.0      # (0.08 / 3)^2 / 0.01^2 = 7.1, x1.1
+
+
+def test_the_core_sends_no_experience_across_a_jump_and_every_other_one():
+    """A robot driven straight along a route by the core, its estimate shifted 0.08 m sideways from tick
+    40 on: the experiences ending at the step and the one after it (whose measured velocity spans it) are
+    not sent; with no jump, all are."""
+    from tests.test_tracker import LIMITS, PATH, StopsAt, loc
+    from services.controller.core import ControllerCore
+    from services.controller.tracker import PathTracker
+    sent = {}
+    for shift in (0.0, 0.08):
+        core = ControllerCore(PATH, PathTracker(PATH, StopsAt(math.inf), LIMITS, speed_mps=0.5), 0.1)
+        rng, ticks = np.random.default_rng(2), []
+        for k in range(80):
+            t = 0.1 * k
+            d, obs = core.step(t, k, loc(t, x=1.0 + 0.05 * k, y=(shift if k >= 40 else 0.0) + 0.002 * rng.standard_normal()))
+            ticks += [k for _ in obs]
+        sent[shift] = ticks
+    assert len(sent[0.08]) == len(sent[0.0]) - 2
+    assert 40 not in sent[0.08] and 41 not in sent[0.08]

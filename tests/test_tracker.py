@@ -266,7 +266,7 @@ def test_a_robot_held_at_rest_after_a_safety_stop_yields_no_experiences():
         jitter = 0.02 * (k % 2) if k > 10 else 0.0     # 2 cm of localization noise: 0.2 m/s apparent
         d, obs = core.step(t, k, loc(t, x=1.0 + 0.05 * min(k, 10) + jitter))
         states.append(d.state)
-        observed.append(obs is not None)
+        observed.append(bool(obs))
     assert states[:9] == ["tracking"] * 9 and set(states[10:]) == {"stopped"}
     assert sum(observed[1:9]) >= 7 and not any(observed[10:])
 

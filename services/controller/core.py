@@ -29,16 +29,19 @@ class ControllerCore:
         self.jumps = EstimateJumps()
         self._from_tick = -1                  # capture tick of the newest estimate
         self._deferred: tuple | None = None   # a candidate jump's check, until its verdict
+        self._held: tuple[int, Observation | None] | None = None   # ... and its experience
 
-    def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, Observation | None]:
+    def step(self, now_s: float, tick: int, loc: LocState | None) -> tuple[Decision, list[Observation]]:
         """One control step at robot tick `tick`: the command to apply now, and the disturbance
-        observation completed by this estimate (eq. 5.17), if any."""
+        observations (eq. 5.17) this estimate completed or released."""
         obs = None
         # experiences only from map-refined estimates: a VO-only pose drifts, and the model would learn it
         if loc is not None and loc.status == "ok":
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
+        observed = [obs] if obs is not None else []
         if loc is not None and loc.has_pose:
-            self._realize(loc)
+            candidate = self._realize(loc)
+            observed = self._experiences(obs, loc.capture_tick, candidate)
             self._from_tick = loc.capture_tick
         self.kappa = self.calibration.factors_at(self.s_m, self.v_mps)
         self.floors = self.calibration.floors()
@@ -51,17 +54,35 @@ class ControllerCore:
         if decision.state == "stopped":
             # a robot held at rest after a safety stop shows nothing of how it moves, and how many such steps
             # a trial has depends on when the runner ends it
-            obs = None
-        return decision, obs
+            observed = []
+        return decision, observed
+
+    def _experiences(self, obs: Observation | None, capture_tick: int, candidate: bool) -> list[Observation]:
+        """The experiences to send now: a candidate jump's waits for its verdict, and a jump's is dropped
+        with the next one (whose measured velocity spans the step): the model must not learn a disturbance
+        that was the localizer's (thesis 5.4.5)."""
+        out = []
+        if self._held is not None:
+            tick, held = self._held
+            self._held = None
+            if any(j.capture_tick == tick for j in self.jumps.jumps[-1:]):
+                obs = None
+            elif held is not None:
+                out.append(held)
+        if candidate:
+            self._held = (capture_tick, obs)
+        elif obs is not None:
+            out.append(obs)
+        return out
 
     @property
     def spread_factors(self) -> tuple[float, ...]:
         """sqrt(kappa_j) of the latest step: what its predicted standard deviations were multiplied by."""
         return tuple(float(f) for f in np.sqrt(self.kappa))
 
-    def _realize(self, loc: LocState) -> None:
+    def _realize(self, loc: LocState) -> bool:
         """Check the predictions made for this estimate's capture tick against it; a candidate jump's
-        (estimate_jumps.py) once the next estimate has told whether it was one."""
+        (estimate_jumps.py) once the next estimate has told whether it was one. True: this is one."""
         pose, dist, lateral, heading = self.tracker.route_errors(loc)
         self.s_m = dist
         cov = self.tracker.route_cov(loc)
@@ -75,6 +96,7 @@ class ControllerCore:
         self._deferred = check if candidate else None
         if not candidate:
             self._check(*check)
+        return candidate
 
     def _check(self, tick: int, lateral: float, heading: float, var_lat: float, var_head: float) -> None:
         self.calibration.realize(tick, lateral, heading, var_lat, var_head,

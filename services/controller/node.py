@@ -350,9 +350,9 @@ class ControllerService(Service):
         self.node.publish(self.k_cmd, VelocityCommand(stamp_s=now_s, tick=tick, trial=self.trial,
                                                       v_mps=d.v_mps, w_radps=d.w_radps, source=self.cfg.algorithm))
         if self.outbox is not None:
-            if obs is not None:
-                self.outbox.add(stamp_s=obs.stamp_s, trial=self.trial, path_id=self.path_id, vertex=obs.vertex,
-                                v_cmd_mps=obs.v_cmd_mps, a=obs.a, g=obs.g)
+            for o in obs:
+                self.outbox.add(stamp_s=o.stamp_s, trial=self.trial, path_id=self.path_id, vertex=o.vertex,
+                                v_cmd_mps=o.v_cmd_mps, a=o.a, g=o.g)
             self.outbox.flush()
         window_n, hyper_version = self._follow_window(d, now_s)
         # the command must arrive; in realtime a status may be dropped under congestion rather than stall
