@@ -232,16 +232,19 @@ def _cornered(gains: list[float], rng) -> TeachResiduals:
     return TeachResiduals(G, U, np.zeros_like(G), np.zeros_like(G), p, z, kappa)
 
 
-def test_the_turn_gain_pools_the_corners_that_agree_and_keeps_one_where_they_do_not():
+def test_the_turn_gain_pools_the_corners_that_agree_and_keeps_the_largest_where_they_do_not():
     """Worked by hand: corners at 0.5, 0.52, 0.48 and one on a slip patch at 0.3 give the three's pooled
-    0.5 (the patch is the learned model's business); two corners at 0.9 and 0.5 say nothing about the
-    robot (one of them is pushed): 1, with the reason; a robot may not turn faster than its drive: 1."""
+    0.5 (the patch is the learned model's business); of two corners at 0.9 and 0.5 one is pushed, and
+    the ground lowers a corner's turn more than it raises it: 0.9, with the reason; a robot may not turn
+    faster than its drive: 1."""
     rng = np.random.default_rng(7)
     fit = fit_turn_gain(_cornered([0.5, 0.52, 0.48, 0.3], rng))
     assert len(fit.corners) == 4 and fit.corners[3] == pytest.approx(0.3, rel=0.05)
     assert fit.gain == pytest.approx(1.0 / (1.0 / 0.5 + 1.0 / 0.52 + 1.0 / 0.48) * 3.0, rel=0.02) and fit.std < 0.01
     split = fit_turn_gain(_cornered([0.9, 0.5], rng))
-    assert split.gain == 1.0 and "disagree" in split.note
+    assert split.gain == pytest.approx(0.9, rel=0.02) and "disagree" in split.note
+    assert fit_turn_gain(_cornered([0.52, 0.3, 0.46], rng)).gain == pytest.approx(0.52, rel=0.02)
+    assert fit_turn_gain(_cornered([2.2, 0.6], rng)).gain == 1.0
     assert fit_turn_gain(_cornered([1.2, 1.2], rng)).gain == 1.0
 
 

@@ -32,7 +32,9 @@ corner and still biases that corner's k (by 1-6 % on the tests' route), a slip p
 patch in a corner lowers its k (0.34 against 0.50-0.56 in a perturbed Grizzly's other three), and a
 slope between two corners can split one into pieces that read 0.1 and 1.1 (the main job's): k pools
 the corners within CORNER_SPREAD / 2 of the corners' median when they are at least half of them (both
-of two), else k = 1 is kept. A route without a corner keeps k = 1 too, and k is
+of two); else the largest corner's k is kept (slip and rough ground lower a corner's k, a slope only
+biases it by a few per cent, and 1, the old fallback, is further from the robot still: a perturbed
+Grizzly of turn efficiency 0.58 read 0.52, 0.30, 0.46 and was planned with 1). A route without a corner keeps k = 1 too, and k is
 at most 1: neither slip nor understeer turns a robot faster than its drive.
 
 A-priori uncertainty. The identified model's one-period residuals on the teach pass, g_k (eq. 5.17,
@@ -395,8 +397,8 @@ def _corners(res: TeachResiduals) -> list[np.ndarray]:
 def fit_turn_gain(res: TeachResiduals) -> TurnGain:
     """The robot's turn rate over the drive's from residuals of a gain-1 model (module docstring): per
     corner k_c = sum(z dtheta) / sum(z p), z the route's turn as the instrument; pooled over the corners
-    within CORNER_SPREAD / 2 of their median when they are at least half of them (both of two), at most
-    1 (neither slip nor understeer turns a robot faster than its drive)."""
+    within CORNER_SPREAD / 2 of their median when they are at least half of them (both of two), else the
+    largest corner's; at most 1 (neither slip nor understeer turns a robot faster than its drive)."""
     corners = _corners(res)
     if not corners:
         return TurnGain(1.0, 0.0, (), f"turn gain: no corner of {math.degrees(CORNER_MIN_RAD):.0f} deg in the "
@@ -410,17 +412,19 @@ def fit_turn_gain(res: TeachResiduals) -> TurnGain:
     each = tuple(float(x) for x in zd / zp)
     median = float(np.median(each))
     agree = [i for i, x in enumerate(each) if abs(x - median) <= 0.5 * CORNER_SPREAD * median]
+    note = ""
     if len(agree) < (len(each) + 1) // 2:      # of two, both (they lie either side of their median)
         listed = ", ".join(f"{x:.2f}" for x in each)
-        return TurnGain(1.0, 0.0, each, f"turn gain: the corners disagree ({listed}): the ground pushes the "
-                                        "robot in some of them: 1 kept")
+        agree = [int(np.argmax(each))]
+        note = (f"turn gain: the corners disagree ({listed}): the ground pushes the robot in some of them; "
+                f"slip and rough ground lower a corner's turn, so the largest ({max(each):.2f}, at most 1) kept")
     zp, zd, corners = zp[agree], zd[agree], [corners[i] for i in agree]
     k = float(zd.sum() / zp.sum())
     every = np.concatenate(corners)
     std = math.sqrt(float(np.mean((dtheta[every] - k * p[every]) ** 2)) * float(np.dot(z[every], z[every]))) / float(zp.sum())
     if not (MIN_TURN_GAIN <= k and std <= MAX_TURN_GAIN_STD):
         return TurnGain(1.0, 0.0, each, f"turn gain {k:.2f} +- {std:.2f} not believed: 1 kept")
-    return TurnGain(min(k, 1.0), std, each)
+    return TurnGain(min(k, 1.0), std, each, note)
 
 
 def _body_variance(loc: LocState, cov: tuple[float, ...] | None) -> np.ndarray:
