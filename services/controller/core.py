@@ -65,7 +65,7 @@ class ControllerCore:
         if self._held is not None:
             tick, held = self._held
             self._held = None
-            if any(j.capture_tick == tick for j in self.jumps.jumps[-1:]):
+            if self.jumps.jumps and self.jumps.jumps[-1].capture_tick == tick:
                 obs = None
             elif held is not None:
                 out.append(held)

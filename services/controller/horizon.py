@@ -198,7 +198,7 @@ class HorizonProblem:
         overrides the profile's speeds). `a_out` (K, 9) receives the disturbance inputs a_j.
         Returns (X, dX/dw) or, with_v_jac, (X, dX/dw, dX/dv)."""
         key = (np.asarray(w, dtype=float).tobytes(), None if v is None else np.asarray(v, dtype=float).tobytes())
-        for k, jac, vjac, out, A in self._memo:
+        for k, jac, vjac, out, A, _ in self._memo:
             if k == key and (jac or not with_jac) and (vjac or not with_v_jac):
                 if a_out is not None:
                     a_out[:] = A
@@ -213,7 +213,8 @@ class HorizonProblem:
         if terms is not None:
             Sw, Sv = self._sensitivities(terms, np.asarray(vb, dtype=float), (Lw, Wv), with_jac, with_v_jac)
         out = (X, Sw, Sv)
-        self._memo = [(key, with_jac, with_v_jac, out, A.copy())] + self._memo[:1]
+        Dg = terms.Dg if terms is not None else None
+        self._memo = [(key, with_jac, with_v_jac, out, A.copy(), Dg)] + self._memo[:1]
         return out if with_v_jac else (X, Sw)
 
     def model_gradients(self, w: np.ndarray) -> np.ndarray:
@@ -221,6 +222,10 @@ class HorizonProblem:
         profile's speeds (no sensitivities: one pass of the model)."""
         if self.model is None:
             raise ValueError("no disturbance model")
+        key = (np.asarray(w, dtype=float).tobytes(), None)
+        for k, _, _, _, _, Dg in self._memo:
+            if k == key and Dg is not None:     # a solver's iterate: its rollout had them already
+                return Dg
         vb = self.effective(self.v)[0]
         wb = self._turn_rates(np.asarray(w, dtype=float), self.v, vb)[0]
         return self._mean(w, self.v, vb, wb, np.empty((self.K, 9)), True)[1].Dg
