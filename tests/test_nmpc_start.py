@@ -1,0 +1,61 @@
+"""Where LB-NMPC's Gauss-Newton starts (nmpc.best_start): on a rate-limited steering the cost is flat in
+commands far from the curvature reached, so the solve must not depend on starting on the right side."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from services.controller.nmpc import LBNMPCLaw, best_start, build_problem
+from services.controller.settings import NMPCSettings
+from tests.test_held_turn import LinearHeading
+from tests.test_nmpc import STRAIGHT, ctx_at
+
+DT = 0.1
+LIMIT = 0.305
+# a MATS-like Ackermann drive: lags 0.3 / 0.18 s, curvature rate 0.34 /(m s), understeer 0.925
+ACKERMANN = NMPCSettings(actuator_tau_s=(0.3, 0.18), curvature_rate_max_per_ms=0.34, turn_gain=0.925)
+
+
+def _ctx(lat_m: float, head_rad: float, kappa: float):
+    """At 1 m/s on a straight, the steering at curvature `kappa` (and last commanded there)."""
+    ctx = ctx_at(STRAIGHT, (5.0, lat_m, head_rad), v=1.0, prev_cmd=(1.0, kappa))
+    return replace(ctx, w_limit=LIMIT, w_limit_at=lambda _v: LIMIT, xi_now=(1.0, kappa))
+
+
+def test_the_start_of_lowest_cost_is_taken_and_the_first_of_equal_ones():
+    problem, lim = build_problem(_ctx(-0.05, -0.18, 0.3), ACKERMANN, DT, None)
+    starts = [-lim, lim, lim.copy(), np.zeros_like(lim)]
+    costs = [problem.cost(w) for w in starts]
+    assert costs[1] == costs[2] and costs[1] < min(costs[0], costs[3])
+    assert best_start(problem, starts) == pytest.approx(lim)
+    assert best_start(problem, [np.zeros_like(lim), -lim]) == pytest.approx(np.zeros_like(lim))
+
+
+@pytest.mark.parametrize("slope", [0.0, -0.1, -0.2])
+def test_lb_nmpc_turns_back_after_a_plan_at_the_other_limit_on_a_rate_limited_steering(slope):
+    """Step 1 (heading +11 deg, steering straight) plans the right turn limit throughout; step 2 finds
+    the robot steering left at +0.3 /m with a -10 deg heading error: the plan must keep steering left.
+    A heading model that keeps 80-100 % of the turn (slope: its answer to the command, per rad/s)
+    gives Gauss-Newton from step 1's plan a slope towards the right limit, where it stayed before
+    best_start (cost 4.85 against 2.83 with slope -0.1). Reference: the best of 61 constant turns."""
+    model = LinearHeading(slope * DT) if slope else None
+    law = LBNMPCLaw(ACKERMANN, DT, model_for=lambda _ctx: model)
+    law.angular(_ctx(0.1, 0.2, 0.0))
+    assert law.last_plan.w[1] < 0.0
+    ctx = _ctx(-0.05, -0.18, 0.3)
+    law.angular(ctx)
+    problem, _ = build_problem(ctx, ACKERMANN, DT, model)
+    best_constant = min(problem.cost(np.full(problem.K, w)) for w in np.linspace(-LIMIT, LIMIT, 61))
+    assert law.last_plan.w[0] > 0.0
+    assert problem.cost(law.last_plan.w) <= best_constant + 1e-9
+
+
+def test_a_drive_without_a_steering_rate_limit_starts_from_the_warm_start():
+    """Without the rate limit the cost is smooth in the turn and the extra starts would cost rollouts."""
+    skid = NMPCSettings(actuator_tau_s=(0.3, 0.18), turn_gain=0.925)
+    law = LBNMPCLaw(skid, DT, model_for=lambda _ctx: LinearHeading(-0.1 * DT))
+    law.angular(_ctx(0.1, 0.2, 0.0))
+    problem, lim = build_problem(_ctx(-0.05, -0.18, 0.3), skid, DT, LinearHeading(-0.1 * DT))
+    assert not problem.curvature_steered
+    assert law.start(problem, lim) == pytest.approx(law.warm_start(problem))
+    assert problem.cost(law.warm_start(problem)) > problem.cost(lim)   # a limit would have been cheaper
