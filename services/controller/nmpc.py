@@ -5,7 +5,8 @@ Each step: the desired states are where the speed profile (schedule, end of rout
 since its capture (the mean of eq. 7.12); the linear speed of every step is fixed by the profile and the
 angular rates w_0..w_{K-1} are optimized by Gauss-Newton (eq. 5.5-5.10, gauss_newton.py) on the
 horizon's cost (horizon.py, eq. 5.16) with the actuator (and Ackermann steering) limits as bounds,
-warm-started from the previous solution shifted by one step.
+warm-started from the previous solution shifted by one step (on a rate-limited steering, from the
+cheapest of it and either turn limit held: best_start).
 """
 from __future__ import annotations
 
@@ -147,14 +148,17 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float, model: Di
 
 
 def best_start(problem: HorizonProblem, starts: Sequence[np.ndarray]) -> np.ndarray:
-    """The start of lowest cost (the first of equal ones). A rate-limited steering (actuator.py) moves its
+    """The start of lowest cost (the first of equal ones, the first evaluated last). A rate-limited steering (actuator.py) moves its
     curvature at its limit whatever the command beyond it, so where the plan's commands lie far from the
     curvature reached the nominal cost is flat in them (the soft limit's slope vanishes) and only their
     side matters; Gauss-Newton there stays where it started, or follows the only slope left, a learned
     heading model's answer to the command, to a limit on the wrong side. Measured: bench
     seed 5903, scheduled LB-NMPC on a MATS in ruts, trial 7: -0.305 rad/s held, "converged" in one
     iteration, at cost 14.7 against 7.5 at +0.305, into a -17 deg heading error, 1.96 m off the route."""
-    costs = [problem.cost(np.asarray(w, dtype=float)) for w in starts]
+    first, *others = (np.asarray(w, dtype=float) for w in starts)
+    costs = [problem.cost(w) for w in others]
+    r, _ = problem.residual(first)     # last and with its Jacobian: the solver's first rollout, memoized
+    costs = [0.5 * float(r @ r), *costs]
     costs = [c if math.isfinite(c) else math.inf for c in costs]
     return np.array(starts[int(np.argmin(costs))], dtype=float)
 
