@@ -148,13 +148,14 @@ def build_problem(ctx: StepContext, settings: NMPCSettings, dt: float, model: Di
 
 
 def best_start(problem: HorizonProblem, starts: Sequence[np.ndarray]) -> np.ndarray:
-    """The start of lowest cost (the first of equal ones, the first evaluated last). A rate-limited steering (actuator.py) moves its
-    curvature at its limit whatever the command beyond it, so where the plan's commands lie far from the
-    curvature reached the nominal cost is flat in them (the soft limit's slope vanishes) and only their
-    side matters; Gauss-Newton there stays where it started, or follows the only slope left, a learned
-    heading model's answer to the command, to a limit on the wrong side. Measured: bench
-    seed 5903, scheduled LB-NMPC on a MATS in ruts, trial 7: -0.305 rad/s held, "converged" in one
-    iteration, at cost 14.7 against 7.5 at +0.305, into a -17 deg heading error, 1.96 m off the route."""
+    """The start of lowest cost (the first of equal ones; the first is evaluated last). A rate-limited
+    steering (actuator.py) moves its curvature at its limit whatever the command beyond it, so where the
+    plan's commands lie far from the curvature reached the nominal cost is flat in them (the soft limit's
+    slope vanishes) and only their side matters; Gauss-Newton there stays where it started, or follows
+    the only slope left, a learned heading model's answer to the command, to a limit on the wrong side.
+    Measured: bench seed 5903, scheduled LB-NMPC on a MATS in ruts, trial 7: -0.305 rad/s held,
+    "converged" in one iteration, at cost 14.7 against 7.5 at +0.305, into a -17 deg heading error,
+    1.96 m off the route."""
     first, *others = (np.asarray(w, dtype=float) for w in starts)
     costs = [problem.cost(w) for w in others]
     r, _ = problem.residual(first)     # last and with its Jacobian: the solver's first rollout, memoized
