@@ -19,7 +19,7 @@ from services.controller.horizon_covariance import HorizonCovariance, variance_m
 from services.controller.laws import StepContext
 from services.controller.nmpc import build_problem
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import fastest_fitting_rung
+from services.controller.speed_ladder import SPEED_LADDER, _try_rung, fastest_fitting_rung, overflow
 from services.controller.minmax import SIGNS
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.controller.uncertainty import (VOUCH_DIMS, VOUCH_SCALES, DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
@@ -466,6 +466,45 @@ def test_a_faster_rung_never_scales_a_crawls_turn_rate_corrections_up():
     assert rung.index == 0
     correction = rung.w - rung.v * rung.problem.ref.kappa
     assert np.all(np.abs(correction) <= 0.5 + 1e-9) and np.all(np.abs(correction) > 0.4)
+
+
+def _ladder_where_nothing_fits(slow_factor: float):
+    """The ladder on an arc with a band no rung's spread fits; rungs at or below 0.5 m/s are tested with
+    their spread widened by `slow_factor` (a place's remembered widening that does not fade at a crawl),
+    the faster ones with the model's own."""
+    path = arc_path()
+    ctx = ctx_for(path, path.pose_at(20.0), v=1.0)
+    s = NMPCSettings()
+    base, _ = build_problem(ctx, s, DT, None)
+    v, w = base.v.copy(), base.w_ref.copy()
+    narrow = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(None, s), DT, s.sp_gamma)
+    wide = dataclasses.replace(narrow, factors=np.full(base.K, slow_factor))
+    cap = np.full((base.K, 3), 1e-4)
+    rungs = [_try_rung(k, base, v, w, wide, np.empty((base.K, 9)), s.v_min_mps, (0.5, narrow))
+             for k in range(len(SPEED_LADDER))]
+    a_out = np.empty((base.K, 9))
+    chosen = fastest_fitting_rung(base, v, w, wide, cap, 3.0, 2.0, None, a_out, (0.5, narrow))
+    return chosen, [overflow(r, cap, 3.0, 2.0) for r in rungs], a_out
+
+
+def test_where_no_rung_fits_the_ladder_takes_the_one_that_misses_by_least_not_the_slowest():
+    """With the slow rungs' spread 6x wider, the slowest rung is not the narrowest: the ladder takes the
+    rung of least overflow (the slowest of the narrow ones, 0.58 m/s), and its GP inputs are that rung's."""
+    chosen, misses, a_out = _ladder_where_nothing_fits(6.0)
+    assert min(misses) > 1.0
+    assert chosen.index == int(np.argmin(misses)) == SPEED_LADDER.index(0.58)
+    assert misses[-1] > misses[chosen.index]
+    A = np.empty_like(a_out)
+    _try_rung(chosen.index, chosen.problem, chosen.v, chosen.w, chosen.cov, A, 0.0)
+    np.testing.assert_allclose(a_out, A)
+
+
+def test_where_no_rung_fits_and_the_spread_grows_with_speed_the_ladder_takes_the_bottom_rung():
+    """The model's own spread narrows as the robot slows: where nothing fits, the bottom rung misses
+    by least, as the ladder always took it."""
+    chosen, misses, _ = _ladder_where_nothing_fits(1.0)
+    assert min(misses) > 1.0 and np.all(np.diff(misses) < 0)
+    assert chosen.index == len(SPEED_LADDER) - 1
 
 
 def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit():

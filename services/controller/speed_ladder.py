@@ -6,13 +6,14 @@ A rung fits when alpha * sigma of its own plan stays inside the band cap, and th
 the route at its speeds (with last step's corrections, scaled) keep some headroom below the drive's
 turn-rate limit: a plan pinned at the limit cannot correct anything. Only the rate limit counts, the one
 slowing down relieves; an Ackermann's curvature limit binds at every speed alike (the SQP keeps to it).
-The ladder climbs one rung per step at most and descends as far as needed; the SQP then fine-tunes
-below the cap. Without it the band is infeasible at the scheduled speed, the slack price dominates the
+The ladder climbs one rung per step at most and descends as far as needed (where no rung fits, to the
+one that misses by least); the SQP then fine-tunes below the cap. Without it the band is infeasible at the scheduled speed, the slack price dominates the
 cost and the plan flips between steps. A rung faster than the passes over the place vouch for is
 widened by the teach pass's needs there (calibration.beyond_at): its covariance model is the rung's own.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,19 +62,37 @@ def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: H
     return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig, loc), loc, cov)
 
 
+def overflow(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> float:
+    """How far the rung misses fitting: the largest share of its band that alpha * sigma takes beyond the
+    first step, in either channel, or of the turn-rate headroom its turn rates take (<= 1: it fits)."""
+    t = alpha * rung.sig[1:]
+    room = np.maximum(cap[1:, 1:3], 1e-12)
+    spread = float(np.max(t[:, 1:3] / room))
+    turn = float(np.max(np.abs(rung.w))) / max(TURN_HEADROOM * w_rate_cap, 1e-12)
+    return max(spread, turn)
+
+
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
                          cap: np.ndarray, alpha: float, w_rate_cap: float, last_index: int | None,
                          a_out: np.ndarray, beyond: tuple[float, HorizonCovariance] | None = None) -> Rung:
-    """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits
-    (or the bottom rung). `cap` (K, 3): the most alpha * sigma may take of the corridor; `w_rate_cap`:
-    the drive's turn-rate limit at any speed. `a_out` (K, 9) receives the chosen rung's GP inputs.
-    `beyond`: the speed above which a rung is tested with the other covariance model."""
+    """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits;
+    where none does, the one that misses by least (`overflow`; the faster of equals). `cap` (K, 3): the
+    most alpha * sigma may take of the corridor; `w_rate_cap`: the drive's turn-rate limit at any speed.
+    `a_out` (K, 9) receives the chosen rung's GP inputs. `beyond`: the speed above which a rung is tested
+    with the other covariance model.
+
+    Slower is not always narrower: the prior's speed-independent terms and a place's remembered widening
+    do not fade at a crawl, and a side slope whose slide acts per second needs a crab angle that grows as
+    the robot slows. Where no rung fits, the bottom one is then no safer than the others."""
     k = 0 if last_index is None else max(last_index - 1, 0)
-    while True:
+    best, best_miss, best_a = None, math.inf, a_out.copy()
+    for k in range(k, len(SPEED_LADDER)):
         rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps, beyond)
-        t = alpha * rung.sig[1:]
-        fits = bool(np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])
-                    and np.all(np.abs(rung.w) <= TURN_HEADROOM * w_rate_cap))
-        if fits or k + 1 == len(SPEED_LADDER):
+        miss = overflow(rung, cap, alpha, w_rate_cap)
+        if miss <= 1.0:
             return rung
-        k += 1
+        if miss < best_miss:
+            best, best_miss = rung, miss
+            best_a[:] = a_out
+    a_out[:] = best_a
+    return best
