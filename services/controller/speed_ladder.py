@@ -84,14 +84,15 @@ def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov
     Slower is not always narrower: the prior's speed-independent terms and a place's remembered widening
     do not fade at a crawl, and a side slope whose slide acts per second needs a crab angle that grows as
     the robot slows. Where no rung fits, the bottom one is then no safer than the others."""
-    k = 0 if last_index is None else max(last_index - 1, 0)
-    best, best_miss, best_a = None, math.inf, a_out.copy()
-    for k in range(k, len(SPEED_LADDER)):
+    first = 0 if last_index is None else max(last_index - 1, 0)
+    best, best_miss, best_a = None, math.inf, np.empty_like(a_out)
+    for k in range(first, len(SPEED_LADDER)):
         rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps, beyond)
-        miss = overflow(rung, cap, alpha, w_rate_cap)
-        if miss <= 1.0:
+        t = alpha * rung.sig[1:]
+        if (np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])
+                and np.all(np.abs(rung.w) <= TURN_HEADROOM * w_rate_cap)):
             return rung
-        if miss < best_miss:
+        if (miss := overflow(rung, cap, alpha, w_rate_cap)) < best_miss:
             best, best_miss = rung, miss
             best_a[:] = a_out
     a_out[:] = best_a
