@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import TruthPose
+from common.messages import NominalModel, TruthPose
 from common.path import Path
 from common.robot import PRESETS, RobotParams
 from services.bridge.simulator import SimSample, Simulator
@@ -16,6 +16,7 @@ from services.controller.actuator import ActuatorLag
 from services.controller.core import ControllerCore
 from services.controller.experience import Observation
 from services.controller.fl import FLGains
+from services.controller.identification import TeachRecorder, identify
 from services.controller.laws import FLLaw, SteeringLaw
 from services.controller.tracker import PathTracker, TrackerLimits
 from services.localizer.pose_source import PoseSource, PoseSourceSettings
@@ -58,14 +59,19 @@ class ClosedLoop:
                                  np.random.default_rng(seed))
         self.teach_speed = teach_speed
         self.path: Path | None = None
+        self.teach_record = TeachRecorder(period_s)   # what the controller's node records of the teach pass
 
     def teach(self) -> Path:
         drv = PurePursuitDriver(self.ref, self.teach_speed, self.robot.max_curvature, self.robot.w_max_radps)
         self.sim.reset(drv.start_pose, 0)
         self.source.start_teach(0)
         s = self.sim.sample()
+        rec = self.teach_record
         for _ in range(100000):
-            self.source.on_truth(truth_of(s, 0), "route")
+            loc = self.source.on_truth(truth_of(s, 0), "route")
+            rec.add_applied(s.tick, s.v_cmd, s.w_cmd)
+            rec.add_odometry(s.tick, s.odom_v, s.odom_w)
+            rec.add_estimate(loc)
             v, w = drv.command((s.x, s.y, s.theta))
             if drv.done and abs(s.v_ground) < 1e-3:
                 break
@@ -74,6 +80,12 @@ class ClosedLoop:
         self.sim.end_trial()
         self.path = self.source.finish_teach("route", loop=self.loop, taught_by="test")
         return self.path
+
+    def identified(self) -> NominalModel:
+        """The nominal model the controller identifies from this teach pass (nominal_models.py), with the
+        robot's steering-rate limit as the deployment configures it."""
+        return identify(self.teach_record, self.path, "bench", 0.0,
+                        curvature_rate_max_per_ms=self.robot.max_curvature_rate)
 
     def repeat(self, trial: int, speed: float, law: SteeringLaw | None = None, max_steps: int = 20000,
                ic_vertices: int = 0, corridor=None, lag: ActuatorLag = ActuatorLag()) -> RepeatResult:
