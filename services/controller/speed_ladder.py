@@ -7,8 +7,8 @@ the route at its speeds (with last step's corrections, scaled) keep some headroo
 turn-rate limit: a plan pinned at the limit cannot correct anything. Only the rate limit counts, the one
 slowing down relieves; an Ackermann's curvature limit binds at every speed alike (the SQP keeps to it).
 The ladder climbs one rung per step at most and descends as far as needed (where no rung fits, to the
-one that misses by least); the SQP then fine-tunes below the cap. Without it the band is infeasible at the scheduled speed, the slack price dominates the
-cost and the plan flips between steps. A rung faster than the passes over the place vouch for is
+one that misses by least); the SQP then fine-tunes below the cap. Without it the band is infeasible at
+the scheduled speed, the slack price dominates the cost and the plan flips between steps. A rung faster than the passes over the place vouch for is
 widened by the teach pass's needs there (calibration.beyond_at): its covariance model is the rung's own.
 """
 from __future__ import annotations
@@ -83,7 +83,7 @@ def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov
 
     Slower is not always narrower: the prior's speed-independent terms and a place's remembered widening
     do not fade at a crawl, and a side slope whose slide acts per second needs a crab angle that grows as
-    the robot slows. Where no rung fits, the bottom one is then no safer than the others."""
+    the robot slows. Where no rung fits, the bottom one is then not always the least unsafe."""
     first = 0 if last_index is None else max(last_index - 1, 0)
     best, best_miss, best_a = None, math.inf, np.empty_like(a_out)
     for k in range(first, len(SPEED_LADDER)):
