@@ -12,8 +12,9 @@ time of `law.angular` (model lookup, GP build when the window changes and the no
 after the previous command, problem set-up, the solve); `prepare_ms_p99` is that between-steps build.
 The process is pinned to one CPU and BLAS to one thread. Every n-th problem is kept and solved again by
 CasADi/IPOPT (same dynamics with the same GP mean written symbolically, same cost, same bounds, same
-start; not for a rate-limited steering, whose turn CasADi's rollout here does not write); `casadi_solve_ms_p50` is IPOPT's solve time (graph building excluded) and `cost_gap` the mean
-relative difference of the optimal costs, (ours - IPOPT's) / IPOPT's: > 0 means ours is worse.
+start; not for a rate-limited steering, whose turn CasADi's rollout here does not write);
+`casadi_solve_ms_p50` is IPOPT's solve time (graph building excluded) and `cost_gap` the mean relative
+difference of the optimal costs, (ours - IPOPT's) / IPOPT's: > 0 means ours is worse.
 """
 from __future__ import annotations
 

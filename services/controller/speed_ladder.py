@@ -8,8 +8,9 @@ turn-rate limit: a plan pinned at the limit cannot correct anything. Only the ra
 slowing down relieves; an Ackermann's curvature limit binds at every speed alike (the SQP keeps to it).
 The ladder climbs one rung per step at most and descends as far as needed (where no rung fits, to the
 one that misses by least); the SQP then fine-tunes below the cap. Without it the band is infeasible at
-the scheduled speed, the slack price dominates the cost and the plan flips between steps. A rung faster than the passes over the place vouch for is
-widened by the teach pass's needs there (calibration.beyond_at): its covariance model is the rung's own.
+the scheduled speed, the slack price dominates the cost and the plan flips between steps. A rung faster
+than the passes over the place vouch for is widened by the teach pass's needs there
+(calibration.beyond_at): its covariance model is the rung's own.
 """
 from __future__ import annotations
 
