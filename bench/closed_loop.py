@@ -59,14 +59,14 @@ class ClosedLoop:
                                  np.random.default_rng(seed))
         self.teach_speed = teach_speed
         self.path: Path | None = None
-        self.teach_record = TeachRecorder(period_s)   # what the controller's node records of the teach pass
+        self.teach_record = TeachRecorder(period_s)   # what the controller's node records of the last teach pass
 
     def teach(self) -> Path:
         drv = PurePursuitDriver(self.ref, self.teach_speed, self.robot.max_curvature, self.robot.w_max_radps)
         self.sim.reset(drv.start_pose, 0)
         self.source.start_teach(0)
         s = self.sim.sample()
-        rec = self.teach_record
+        rec = self.teach_record = TeachRecorder(self.period_s)
         for _ in range(100000):
             loc = self.source.on_truth(truth_of(s, 0), "route")
             rec.add_applied(s.tick, s.v_cmd, s.w_cmd)

@@ -484,25 +484,25 @@ def _ladder_where_nothing_fits(slow_factor: float):
              for k in range(len(SPEED_LADDER))]
     a_out = np.empty((base.K, 9))
     chosen = fastest_fitting_rung(base, v, w, wide, cap, 3.0, 2.0, None, a_out, (0.5, narrow))
-    return chosen, [overflow(r, cap, 3.0, 2.0) for r in rungs], a_out
+    A = np.empty_like(a_out)      # the chosen rung's GP inputs, tested on their own
+    _try_rung(chosen.index, base, v, w, wide, A, s.v_min_mps, (0.5, narrow))
+    return chosen, [overflow(r, cap, 3.0, 2.0) for r in rungs], a_out, A
 
 
 def test_where_no_rung_fits_the_ladder_takes_the_one_that_misses_by_least_not_the_slowest():
     """With the slow rungs' spread 6x wider, the slowest rung is not the narrowest: the ladder takes the
     rung of least overflow (the slowest of the narrow ones, 0.58 m/s), and its GP inputs are that rung's."""
-    chosen, misses, a_out = _ladder_where_nothing_fits(6.0)
+    chosen, misses, a_out, A = _ladder_where_nothing_fits(6.0)
     assert min(misses) > 1.0
     assert chosen.index == int(np.argmin(misses)) == SPEED_LADDER.index(0.58)
     assert misses[-1] > misses[chosen.index]
-    A = np.empty_like(a_out)
-    _try_rung(chosen.index, chosen.problem, chosen.v, chosen.w, chosen.cov, A, 0.0)
     np.testing.assert_allclose(a_out, A)
 
 
 def test_where_no_rung_fits_and_the_spread_grows_with_speed_the_ladder_takes_the_bottom_rung():
     """The model's own spread narrows as the robot slows: where nothing fits, the bottom rung misses
     by least, as the ladder always took it."""
-    chosen, misses, _ = _ladder_where_nothing_fits(1.0)
+    chosen, misses, _, _ = _ladder_where_nothing_fits(1.0)
     assert min(misses) > 1.0 and np.all(np.diff(misses) < 0)
     assert chosen.index == len(SPEED_LADDER) - 1
 
