@@ -1,7 +1,8 @@
 """The long memory of what the predictions missed (services/controller/missed_variance.py) and its floors
-on the predicted spread (calibration.py, horizon_covariance.py): the sliding maximum and quantile against
-brute force ones, floors per channel that outlive the recent window and carry over to a surer model, and
-the widened spread and its derivative against their definitions."""
+on the predicted spread (calibration.py, horizon_covariance.py): the most missed and the quantile of the
+last values, weighted by the plan's speed, against brute force ones; floors per channel that outlive the
+recent window and carry over to a surer model; the widened spread and its derivative against their
+definitions."""
 import math
 
 import numpy as np
@@ -9,27 +10,57 @@ import pytest
 
 from services.controller.calibration import WINDOW, Prediction, SpreadCalibration
 from services.controller.horizon_covariance import HorizonCovariance
-from services.controller.missed_variance import LONG_WINDOW, MARGIN, SlidingMax, SlidingQuantile, SpreadFloors
+from services.controller.missed_variance import LONG_WINDOW, MARGIN, MissedVariance, SpreadFloors
 
 
-def test_the_sliding_maximum_and_quantile_are_those_of_the_last_values():
+def _brute_floors(asked: np.ndarray, missed: np.ndarray, speeds: np.ndarray, v: float | None):
+    """MARGIN times the most missed and the 0.995-quantile (the ceil(0.005 n)-th largest) of the asked-for
+    variances of the values given, each weighted min(1, v / its speed) (None: 1)."""
+    w = np.ones(len(speeds)) if v is None else np.minimum(1.0, v / speeds)
+    a, m = asked * w[:, None], missed * w[:, None]
+    r = max(1, math.ceil(0.005 * len(a) - 1e-9))
+    return MARGIN * m.max(axis=0), MARGIN * np.sort(a, axis=0)[len(a) - r]
+
+
+def test_the_floors_are_the_most_missed_and_the_quantile_of_the_last_values_weighted_by_speed():
     rng = np.random.default_rng(0)
-    values = rng.exponential(size=3000)
-    size = 200
-    mx, qu = SlidingMax(size), SlidingQuantile(size, 0.99)
-    for i, v in enumerate(values):
-        mx.push(v)
-        qu.push(v)
-        last = values[max(0, i - size + 1):i + 1]
-        assert mx.value == last.max()
-        assert qu.value == np.sort(last)[len(last) - max(1, math.ceil(0.01 * len(last)))]   # the 2nd largest of 200
-        if i == 1500:
-            mx_copy, qu_copy, at = mx.copy(), qu.copy(), i
-    for v in values[:50]:
-        mx_copy.push(v)
-        qu_copy.push(v)
-    window = np.concatenate([values[at + 1 - size + 50:at + 1], values[:50]])
-    assert mx_copy.value == window.max() and qu_copy.value == np.sort(window)[-2]
+    size, n = 300, 1000
+    asked = rng.exponential(size=(n, 2))
+    share = rng.exponential(size=(n, 2))
+    speeds = rng.uniform(0.1, 2.5, n)
+    mem = MissedVariance(horizon=2, size=size)
+    for i in range(n):
+        mem.add(2, tuple(asked[i]), tuple(share[i]), speeds[i])
+        if i in (0, 150, 299, 300, 731, n - 1):
+            last = slice(max(0, i - size + 1), i + 1)
+            missed = np.maximum(asked[last] - share[last], 0.0)
+            for v in (None, 0.3, 1.0, 3.0):
+                f = mem.floors(v)
+                added, least = _brute_floors(asked[last], missed, speeds[last], v)
+                np.testing.assert_allclose(f.added[1], added, rtol=1e-6)    # kept in float32
+                np.testing.assert_allclose(f.least[1], least, rtol=1e-6)
+                assert not f.added[0].any() and not f.least[0].any()      # step 1 saw nothing
+        if i == 731:
+            copy, at = mem.copy(), i
+    for i in range(50):
+        copy.add(2, (9.0, 9.0), (0.0, 0.0), 1.0)
+    assert mem.floors().added[1, 0] < MARGIN * 9.0 <= copy.floors().added[1, 0]
+
+
+def test_a_plan_is_held_in_full_to_what_was_missed_at_its_speed_or_slower_and_in_proportion_above():
+    """A heading surprise at 2 m/s, a smaller lateral miss at 0.5 m/s: a plan at 2 m/s or faster is held
+    to both in full, one at 0.5 m/s to a quarter of the surprise and all of the slow miss, one at a crawl
+    to its share of each; the step's floors by speed say the same."""
+    mem = MissedVariance(horizon=1)
+    mem.add(1, (0.0, 0.01), (0.0, 0.002), 2.0)       # heading: asked 0.01 rad^2 where 0.002 was claimed
+    mem.add(1, (4e-4, 0.0), (1e-4, 0.0), 0.5)        # lateral: asked 4e-4 m^2 where 1e-4 was claimed
+    for v, w_fast, w_slow in ((3.0, 1.0, 1.0), (2.0, 1.0, 1.0), (0.5, 0.25, 1.0), (0.1, 0.05, 0.2)):
+        f = mem.floors(v)
+        np.testing.assert_allclose(f.added[0], MARGIN * np.array([3e-4 * w_slow, 0.008 * w_fast]), rtol=1e-6)
+        by_speed = mem.by_speed().at(v)
+        np.testing.assert_allclose(by_speed.added, f.added)
+        np.testing.assert_allclose(by_speed.least, f.least)
+    np.testing.assert_allclose(mem.floors().added, mem.floors(2.0).added)
 
 
 def realize_one(cal: SpreadCalibration, k: int, lat_err: float, head_err: float, sigma_lat: float,

@@ -21,6 +21,7 @@ from services.controller.nmpc import build_problem
 from services.controller.settings import NMPCSettings
 from services.controller.speed_ladder import SPEED_LADDER, _try_rung, fastest_fitting_rung, overflow
 from services.controller.minmax import SIGNS
+from services.controller.missed_variance import MissedVariance
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
 from services.controller.uncertainty import (VOUCH_DIMS, VOUCH_SCALES, DisturbanceVariance, PriorStd, lateral_sigma_speed_jacobian, propagate,
                                              route_sigmas, sigma_point_step, variance_speed_derivatives)
@@ -505,6 +506,41 @@ def test_where_no_rung_fits_and_the_spread_grows_with_speed_the_ladder_takes_the
     chosen, misses, _, _ = _ladder_where_nothing_fits(1.0)
     assert min(misses) > 1.0 and np.all(np.diff(misses) < 0)
     assert chosen.index == len(SPEED_LADDER) - 1
+
+
+def _ladder_after_a_heading_surprise(v_then: float):
+    """The ladder on an arc at 1 m/s after a 5 deg heading surprise at every horizon step, made at `v_then`,
+    in a band of 3 sigma = 12 deg: the rung it takes with the floors by speed, and every rung's overflow
+    with the floors in full."""
+    path = arc_path()
+    ctx = ctx_for(path, path.pose_at(20.0), v=1.0)
+    s = NMPCSettings()
+    base, _ = build_problem(ctx, s, DT, None)
+    v, w = base.v.copy(), base.w_ref.copy()
+    cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(None, s), DT, s.sp_gamma)
+    cap = np.column_stack([np.full(base.K, np.inf), np.full(base.K, 1.0), np.full(base.K, math.radians(12.0))])
+    memory = MissedVariance(base.K)
+    for j in range(1, base.K + 1):
+        memory.add(j, (0.0, math.radians(5.0) ** 2), (0.0, 3e-4), v_then)
+    a_out = np.empty((base.K, 9))
+    chosen = fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, None, a_out, None, memory.by_speed())
+    in_full = [overflow(_try_rung(k, base, v, w, cov.with_floors(memory.floors()), a_out, s.v_min_mps), cap, 3.0, 2.0)
+               for k in range(len(SPEED_LADDER))]
+    return chosen, overflow(chosen, cap, 3.0, 2.0), in_full
+
+
+def test_a_surprise_at_speed_floors_a_slower_rung_in_proportion_so_slowing_down_fits_again():
+    """Held in full at every speed, the surprise fits no rung (the floor does not fade at a crawl, and the
+    ladder would crawl on at its bottom rung); a rung at 0.48 of the speed the surprise was met at carries
+    0.48 of its variance and fits."""
+    chosen, miss, in_full = _ladder_after_a_heading_surprise(1.0)
+    assert min(in_full) > 1.0
+    assert miss <= 1.0 and SPEED_LADDER[chosen.index] == 0.48
+
+
+def test_a_surprise_at_a_crawl_floors_every_rung_in_full():
+    chosen, miss, in_full = _ladder_after_a_heading_surprise(0.12)
+    assert miss == pytest.approx(min(in_full)) and miss > 1.0
 
 
 def test_robust_law_stops_outside_the_corridor_and_when_uncertainty_does_not_fit():

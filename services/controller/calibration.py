@@ -48,9 +48,9 @@ acceleration limit identified on the teach pass): the ladder changes speed at on
 
 Rare errors and a model that changes between trials are what the recent window and the ratios do not
 hold: each realized prediction also tells, in m^2 and rad^2, the variance its error asked for and what
-it missed beyond the model's own share, which missed_variance.py remembers per step and channel over a
-longer window, across trials, as floors under every later prediction's model share (`floors`),
-whatever the ratio factors say.
+it missed beyond the model's own share, which missed_variance.py remembers per step and channel, with
+the speed it was made at, over a longer window, across trials, as floors under every later prediction's
+model share at that speed or faster (`floors`), whatever the ratio factors say.
 
 What a pass met at a place holds near the speed it drove there: a calm pass at 1.4 m/s says nothing of
 2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
@@ -69,7 +69,7 @@ from typing import Callable
 
 import numpy as np
 
-from services.controller.missed_variance import MARGIN, MissedVariance, SpreadFloors
+from services.controller.missed_variance import MARGIN, FloorsBySpeed, MissedVariance, SpreadFloors
 
 WINDOW = 150             # predictions per horizon step remembered (15 s at 10 Hz)
 # MARGIN (missed_variance.py) on the largest need: the next error is rarely exactly the worst seen
@@ -155,10 +155,14 @@ class SpreadCalibration:
             return self.scales.copy()
         return _widened(self.scales, np.max(near, axis=0))
 
-    def floors(self) -> SpreadFloors:
+    def floors(self, v_mps: float | None = None) -> SpreadFloors:
         """Per step and channel, what is added to the model's share of the predicted variance and the
-        least that share may be (missed_variance.py)."""
-        return self.missed.floors()
+        least that share may be, for a plan at `v_mps` (missed_variance.py; None: at any speed)."""
+        return self.missed.floors(v_mps)
+
+    def floors_by_speed(self) -> FloorsBySpeed:
+        """The same as a function of the plan's speed, for this control step."""
+        return self.missed.by_speed()
 
     def beyond_at(self, s_m: float | None, v_mps: float = 0.0) -> Beyond:
         """For a plan made at route distance `s_m` at speed `v_mps`: from which speed it outruns what the
@@ -197,7 +201,7 @@ class SpreadCalibration:
             head = _Channel(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale, p.model_sigma_head_rad)
             need = max(lat.need, head.need)
             out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
-            self.missed.add(p.step, (lat.asked, head.asked), (lat.share, head.share))
+            self.missed.add(p.step, (lat.asked, head.asked), (lat.share, head.share), p.v_mps)
             self._remember(p, need)
         return out
 

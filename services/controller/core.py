@@ -25,7 +25,7 @@ class ControllerCore:
         self.s_m: float | None = None         # route distance of the newest estimate
         self.v_mps = 0.0                      # the speed last commanded
         self.kappa = self.calibration.factors_at(None)   # the calibration's factors of the latest step
-        self.floors = self.calibration.floors()           # ... and its floors on the model's share
+        self.floors = self.calibration.floors_by_speed()  # ... and its floors on the model's share
         self.jumps = EstimateJumps()
         self._from_tick = -1                  # capture tick of the newest estimate
         self._deferred: tuple | None = None   # a candidate jump's check, until its verdict
@@ -44,7 +44,7 @@ class ControllerCore:
             observed = self._experiences(obs, loc.capture_tick, candidate)
             self._from_tick = loc.capture_tick
         self.kappa = self.calibration.factors_at(self.s_m, self.v_mps)
-        self.floors = self.calibration.floors()
+        self.floors = self.calibration.floors_by_speed()
         beyond = self.calibration.beyond_at(self.s_m, self.v_mps)
         factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors,

@@ -7,10 +7,10 @@ covariance, carried rigidly along the plan, is not the model's to be wrong about
 spread would, at standstill, multiply the estimate's noise by factors learned from prediction errors
 at speed, and a robot whose corridor is a few estimate-sigmas wide could never start again. The
 calibration's floors (missed_variance.py) are variances in their own right, lateral and heading, added
-to the model's share or under it, which no slower plan sheds."""
+to the model's share or under it; a plan sheds of them only what was missed faster than it drives."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -53,6 +53,10 @@ class HorizonCovariance:
                 Sigma = sigma_point_step(p.pose, Sigma, g, vg, p.v_mps, p.w_radps, dt, gamma)
         return cls(var, Sigma, dt, gamma, np.asarray(factors, dtype=float) if factors else None, loc,
                    (float(at[0]), float(at[1])), floors if floors is not None and floors.any() else None)
+
+    def with_floors(self, floors: SpreadFloors | None) -> HorizonCovariance:
+        """The same model with other floors (the calibration's at another plan speed)."""
+        return replace(self, floors=floors if floors is not None and floors.any() else None)
 
     def localizer_part(self, X: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Route-frame standard deviations (K, 3) of x_1..x_K (measured along the route's `direction` (K,))
@@ -100,8 +104,8 @@ class HorizonCovariance:
         return np.sqrt(loc2 + wide)
 
     def least(self, loc: np.ndarray) -> np.ndarray:
-        """(K, 3): the least standard deviations at any speed: the localizer's share `loc` and the
-        calibration's floors, which no slower plan sheds."""
+        """(K, 3): the least standard deviations of this model at any speed: the localizer's share `loc`
+        and the calibration's floors (those of the plan speed they were taken at)."""
         added, least = self._floors(len(loc))
         return np.sqrt(np.square(loc) + np.maximum(added, least))
 

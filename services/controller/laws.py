@@ -13,7 +13,7 @@ import numpy as np
 from common.path import Path
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains, fl_angular_rate
-from services.controller.missed_variance import SpreadFloors
+from services.controller.missed_variance import FloorsBySpeed
 
 
 @dataclass(frozen=True)
@@ -50,8 +50,8 @@ class StepContext:
     spread_factors_beyond: tuple[float, ...] = ()
     spread_beyond_mps: float = float("inf")
     # the calibration's floors on each horizon step's model share of the predicted variance, lateral and
-    # heading (calibration.floors); None: none
-    spread_floors: SpreadFloors | None = None
+    # heading, by the plan's speed (calibration.floors_by_speed); None: none
+    spread_floors: FloorsBySpeed | None = None
     loc_age_s: float = 0.0               # how old `pose` is (now - its capture): what the feedback lags by
 
 

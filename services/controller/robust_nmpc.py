@@ -38,6 +38,7 @@ from services.controller.horizon import HorizonProblem
 from services.controller.horizon_covariance import HorizonCovariance, variance_model
 from services.controller.laws import LawResult, SolveReport, StepContext, UncertaintyReport
 from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
+from services.controller.missed_variance import SpreadFloors
 from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
 from services.controller.speed_ladder import Rung, fastest_fitting_rung
@@ -59,6 +60,11 @@ def _horizon_sigmas(sig: np.ndarray, loc: np.ndarray, raw: np.ndarray) -> dict:
 def _kappa(cov: HorizonCovariance) -> tuple[float, ...]:
     """The calibration's factors on the variance `cov` widens by (empty: none)."""
     return () if cov.factors is None else tuple(float(f * f) for f in cov.factors)
+
+
+def _floors_at(ctx: StepContext, v: np.ndarray) -> SpreadFloors | None:
+    """The calibration's floors for a plan at speeds `v` (its fastest decides)."""
+    return None if ctx.spread_floors is None else ctx.spread_floors.at(float(np.max(v)))
 
 
 def _estimate_sigmas(ctx: StepContext) -> tuple[float, float]:
@@ -129,7 +135,7 @@ class MMLBNMPCLaw:
         A = np.empty((problem.K, 9))
         X0, _ = problem.rollout(u0, with_jac=True, a_out=A)     # the solver's first linearization reuses it
         cov = HorizonCovariance.at_start(ctx.pose_cov, problem.start, variance_model(gp, s), self.dt, s.sp_gamma,
-                                         ctx.spread_factors, ctx.spread_floors)
+                                         ctx.spread_factors, _floors_at(ctx, problem.v))
         loc = cov.localizer_part(X0, problem.ref.direction_rad[1:])
         raw = cov.along(problem, X0, A, problem.v, u0)[1]
         return cov.widened(raw, loc), loc, raw
@@ -167,7 +173,7 @@ class RCLBNMPCLaw:
         probes = () if self.last_plan is None else (shifted(self.last_step.result.iterate.w),)
         base, _ = build_problem(ctx, s, dt, gp, probes)
         cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(gp, s), dt, s.sp_gamma,
-                                         ctx.spread_factors, ctx.spread_floors)
+                                         ctx.spread_factors, _floors_at(ctx, base.v))
         v, w, v_max = self._warm_start(ctx, base)
         problem = base.following(v)
         lo_lat, hi_lat, head_lim = corridor.at(problem.ref.s_m[1:])
@@ -239,7 +245,8 @@ class RCLBNMPCLaw:
         if ctx.spread_factors_beyond and math.isfinite(ctx.spread_beyond_mps):
             beyond = (ctx.spread_beyond_mps, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond)))
         # the drive's turn-rate limit at any speed (its curvature limit, if any, left out: speed_ladder.py)
-        rung = fastest_fitting_rung(problem, v, w, cov, cap, self.alpha, ctx.w_limit_at(math.inf), last, A, beyond)
+        rung = fastest_fitting_rung(problem, v, w, cov, cap, self.alpha, ctx.w_limit_at(math.inf), last, A, beyond,
+                                    ctx.spread_floors)
         self._rung = rung.index
         return rung
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from services.controller.horizon import HorizonProblem
 from services.controller.horizon_covariance import HorizonCovariance
+from services.controller.missed_variance import FloorsBySpeed
 
 SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)   # shares of the scheduled speeds
 TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's turn-rate limit
@@ -46,12 +47,16 @@ class Rung:
 
 
 def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
-              a_out: np.ndarray, v_min: float, beyond: tuple[float, HorizonCovariance] | None = None) -> Rung:
-    """The rung's own profile, tested at its own speeds: a rung "fitted" at the warm start's slower
-    speeds would be driven at the rung's and fall back next step (two-step chatter)."""
+              a_out: np.ndarray, v_min: float, beyond: tuple[float, HorizonCovariance] | None = None,
+              floors: FloorsBySpeed | None = None) -> Rung:
+    """The rung's own profile, tested at its own speeds (and the calibration's floors at them): a rung
+    "fitted" at the warm start's slower speeds would be driven at the rung's and fall back next step
+    (two-step chatter)."""
     vk = np.clip(SPEED_LADDER[k] * base.v, v_min, None)
     if beyond is not None and float(vk.max()) > beyond[0]:
         cov = beyond[1]
+    if floors is not None:
+        cov = cov.with_floors(floors.at(float(vk.max())))
     p = base.following(vk)
     # same path: corrections scaled down with speed, never up (a correction made at a crawl is a turn on
     # the spot, which no faster rung could drive)
@@ -75,20 +80,22 @@ def overflow(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> fl
 
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
                          cap: np.ndarray, alpha: float, w_rate_cap: float, last_index: int | None,
-                         a_out: np.ndarray, beyond: tuple[float, HorizonCovariance] | None = None) -> Rung:
+                         a_out: np.ndarray, beyond: tuple[float, HorizonCovariance] | None = None,
+                         floors: FloorsBySpeed | None = None) -> Rung:
     """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits;
     where none does, the one that misses by least (`overflow`; the faster of equals). `cap` (K, 3): the
     most alpha * sigma may take of the corridor; `w_rate_cap`: the drive's turn-rate limit at any speed.
     `a_out` (K, 9) receives the chosen rung's GP inputs. `beyond`: the speed above which a rung is tested
-    with the other covariance model.
+    with the other covariance model; `floors`: the calibration's, taken at each rung's speed.
 
-    Slower is not always narrower: the prior's speed-independent terms and a place's remembered widening
-    do not fade at a crawl, and a side slope whose slide acts per second needs a crab angle that grows as
-    the robot slows. Where no rung fits, the bottom one is then not always the least unsafe."""
+    Slower is not always narrower: the prior's speed-independent terms, a place's remembered widening and
+    what a crawl itself missed do not fade at a crawl, and a side slope whose slide acts per second needs
+    a crab angle that grows as the robot slows. Where no rung fits, the bottom one is then not always the
+    least unsafe."""
     first = 0 if last_index is None else max(last_index - 1, 0)
     best, best_miss, best_a = None, math.inf, np.empty_like(a_out)
     for k in range(first, len(SPEED_LADDER)):
-        rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps, beyond)
+        rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps, beyond, floors)
         t = alpha * rung.sig[1:]
         if (np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])
                 and np.all(np.abs(rung.w) <= TURN_HEADROOM * w_rate_cap)):

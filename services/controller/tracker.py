@@ -23,7 +23,7 @@ from services.controller.actuator import ActuatorLag
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
-from services.controller.missed_variance import SpreadFloors
+from services.controller.missed_variance import FloorsBySpeed
 
 LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
 STOP_DECEL_MPS2 = 0.4    # the gentle deceleration into the end of the route
@@ -124,12 +124,13 @@ class PathTracker:
              command_at: Callable[[int], tuple[float, float] | None] | None = None,
              spread_factors: tuple[float, ...] = (),
              spread_beyond: tuple[float, tuple[float, ...]] = (float("inf"), ()),
-             spread_floors: SpreadFloors | None = None) -> Decision:
+             spread_floors: FloorsBySpeed | None = None) -> Decision:
         """`tick`: the robot tick this command will be applied at; `command_at(t)`: the command applied
         at tick t. With both, the law learns which commands were applied since the estimate's capture.
         `spread_factors`: the online calibration's factors on the predicted spread per step (calibration.py);
         `spread_beyond`: from which speed a plan outruns the place's passes, and the factors then;
-        `spread_floors`: its floors per step under the model's share of the variance (lateral, heading)."""
+        `spread_floors`: its floors per step under the model's share of the variance (lateral, heading),
+        by the plan's speed."""
         if loc is not None and loc.has_pose:
             self._last_ok = loc
         last = self._last_ok
