@@ -170,7 +170,9 @@ def test_a_calm_pass_vouches_for_a_place_only_up_to_a_little_above_its_speed():
     """The teach pass (1.0 m/s) needed twice the spread at 40-42 m. Trial 1 crosses it calmly at 1.4 m/s:
     its needs replace the teach pass's, for plans up to GROWTH x 1.4 m/s; a faster plan there is widened
     by the teach pass's needs again, as is any plan at a place the teach pass found rough but no trial
-    has passed faster. Places the teach pass found calm have no such limit."""
+    has passed faster. A slower calm pass (0.5 m/s) replaces the needs with its own, which vouch only up
+    to GROWTH x its speed, whatever faster passes before it drove. Places the teach pass found calm have
+    no such limit."""
     rows = [[1.0]] * 50
     rows[20] = [2.0]
     first = SpreadCalibration(horizon=1, places=teach_places(2.0, rows, 1), speeds=teach_speeds(2.0, [1.0] * 50))
@@ -182,8 +184,9 @@ def test_a_calm_pass_vouches_for_a_place_only_up_to_a_little_above_its_speed():
     assert second.factors_at(41.0)[0] == 1.0                      # the calm pass replaced the teach's needs
     b = second.beyond_at(41.0)
     assert b.speed_mps == pytest.approx(GROWTH * 1.4) and b.factors[0] == pytest.approx(MARGIN * 4.0)
-    drive_pass(second, lambda s: 0.0, v_mps=1.2)                  # a slower pass lowers nothing
-    assert second.continued().beyond_at(41.0).speed_mps == pytest.approx(GROWTH * 1.4)
+    drive_pass(second, lambda s: 0.0, v_mps=0.5)                  # a calm crawl
+    b = second.continued().beyond_at(41.0)
+    assert b.speed_mps == pytest.approx(GROWTH * 0.5) and b.factors[0] == pytest.approx(MARGIN * 4.0)
 
 
 def test_a_factor_learned_at_speed_widens_only_the_models_share_of_the_spread():

@@ -61,3 +61,32 @@ def test_a_drive_without_a_steering_rate_limit_starts_from_the_warm_start():
     assert not problem.curvature_steered
     assert law.start(problem, lim) == pytest.approx(law.warm_start(problem))
     assert problem.cost(law.warm_start(problem)) > problem.cost(lim)   # a limit would have been cheaper
+
+
+def test_rc_lb_nmpcs_sqp_starts_from_the_least_merit_of_its_warm_start_and_either_limit_on_a_rate_limited_steering():
+    """RC-LB-NMPC's SQP, given a warm start at the wrong limit (the robot steering left at +0.3 /m with a
+    -10 deg heading error), starts from the left limit held, the plan of least merit, with that plan's
+    GP inputs; a skid-steer's starts from its warm start."""
+    import math
+
+    from services.controller.corridor import Corridor
+    from services.controller.robust_nmpc import RCLBNMPCLaw
+    corridor = Corridor(STRAIGHT.s, 0.5, math.radians(30))
+    for settings, steered in ((ACKERMANN, True), (replace(ACKERMANN, curvature_rate_max_per_ms=0.0), False)):
+        ctx = replace(_ctx(-0.05, -0.18, 0.3), corridor=corridor, pose_cov=np.diag([1e-4, 1e-4, 1e-5]),
+                      v_max_mps=1.0, w_limit_at=lambda v: LIMIT * max(v, 0.05))
+        law = RCLBNMPCLaw(settings, DT)
+        law.angular(ctx)
+        nlp, v = law.last_step.nlp, law.last_step.start.v
+        assert nlp.problem.curvature_steered == steered
+        limit = nlp.w_limits(v)
+        A = np.empty((len(v), 9))
+        start = law._start(nlp, v, -limit, A)
+        merits = [nlp.evaluate(v, w).merit for w in (-limit, limit)]
+        if not steered:
+            assert start.w == pytest.approx(-limit)
+            continue
+        assert merits[1] < merits[0] and start.w == pytest.approx(limit) and start.merit == pytest.approx(merits[1])
+        fresh = np.empty_like(A)
+        nlp.evaluate(v, limit, fresh)
+        np.testing.assert_allclose(A, fresh)

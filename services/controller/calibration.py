@@ -54,10 +54,15 @@ model share at that speed or faster (`floors`), whatever the ratio factors say.
 
 What a pass met at a place holds near the speed it drove there: a calm pass at 1.4 m/s says nothing of
 2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
-patch outgrow a lagging turn. So each place also keeps the fastest speed any pass (the teach pass
-included) commanded there, and a plan faster than GROWTH times it is widened by the larger of the latest
-pass's needs and the teach pass's (`beyond_at`): speed at a place the teach pass found rough grows by at
-most GROWTH per trial over what has been driven there (thesis 4: speed raised with experience).
+patch outgrow a lagging turn. So each place also keeps the fastest speed the latest pass over it (the
+teach pass, before trial 1) commanded there, the pass whose needs the place holds, and a plan faster than
+GROWTH times it is widened by the larger of those needs and the teach pass's (`beyond_at`): speed at a
+place the teach pass found rough grows by at most GROWTH per trial over what was last driven there
+(thesis 4: speed raised with experience). Not over the fastest pass ever: a trial 1 that crawled
+calmly through a rough patch the teach pass crossed at 1 m/s replaced the teach pass's needs there, and
+vouched by the teach pass's speed for 1.25 m/s, trial 2 entered the patch at 1.22 m/s with the calm
+crawl's needs; the patch turned the robot 15 deg in 1.5 s against a 1.5 deg sigma and it left its
+corridor by 0.3 m (bench seed 4409, MATS s1021326272).
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
@@ -75,7 +80,7 @@ WINDOW = 150             # predictions per horizon step remembered (15 s at 10 H
 # MARGIN (missed_variance.py) on the largest need: the next error is rarely exactly the worst seen
 MAX_SCALE = 400.0        # 20x the modelled standard deviation
 PLACE_BIN_M = 2.0        # route distance per place whose needs are remembered across trials
-GROWTH = 1.25            # a place's passes vouch for plans up to this times the fastest speed driven there
+GROWTH = 1.25            # a place's latest pass vouches for plans up to this times its speed there
 
 
 @dataclass(frozen=True)
@@ -123,20 +128,18 @@ class SpreadCalibration:
         self.places_before = dict(places or {})      # place bin -> needs per step, of the latest pass
         self.places_now: dict[int, np.ndarray] = {}  # the same, of this trial
         self.first = dict(first if first is not None else self.places_before)   # the teach pass's needs
-        self.speeds_before = dict(speeds or {})      # place bin -> the fastest speed commanded there
+        self.speeds_before = dict(speeds or {})      # place bin -> the fastest speed its latest pass commanded
         self.speeds_now: dict[int, float] = {}
         self.brake_mps2 = brake_mps2
         self.missed = missed.copy() if missed is not None and missed.horizon == horizon else MissedVariance(horizon)
 
     def continued(self) -> "SpreadCalibration":
-        """A calibration for the next trial on the same route and model: this one's recent needs and
-        its needs by place (over the earlier passes' where it did not pass), the fastest speeds of all
-        passes, no predictions pending, counts from zero."""
-        speeds = {b: max(self.speeds_before.get(b, 0.0), self.speeds_now.get(b, 0.0))
-                  for b in {*self.speeds_before, *self.speeds_now}}
+        """A calibration for the next trial on the same route and model: this one's recent needs, and by
+        place its needs and speeds (the earlier passes' where it did not pass), no predictions pending,
+        counts from zero."""
         return SpreadCalibration(len(self.recent), self.scales, self.recent,
-                                 {**self.places_before, **self.places_now}, speeds, self.first, self.brake_mps2,
-                                 self.missed)
+                                 {**self.places_before, **self.places_now}, {**self.speeds_before, **self.speeds_now},
+                                 self.first, self.brake_mps2, self.missed)
 
     def _near(self, s_m: float, v_mps: float) -> range:
         """The place bins a plan made at `s_m` at speed `v_mps` must already allow for: the neighbouring
@@ -166,7 +169,7 @@ class SpreadCalibration:
 
     def beyond_at(self, s_m: float | None, v_mps: float = 0.0) -> Beyond:
         """For a plan made at route distance `s_m` at speed `v_mps`: from which speed it outruns what the
-        passes over the places near (_near) vouch for (GROWTH times the slowest of their fastest speeds),
+        latest passes over the places near (_near) vouch for (GROWTH times the slowest of their speeds),
         and the factors then (the teach pass's needs there over factors_at's). Nothing where the teach
         pass needed no widening."""
         if s_m is None or not math.isfinite(s_m) or not self.first:

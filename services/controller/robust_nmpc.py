@@ -195,7 +195,7 @@ class RCLBNMPCLaw:
             nlp = dataclasses.replace(nlp, cap=reach_capped(cap, start_errors(problem), problem.effective(v)[0],
                                                             nlp.w_limits(v), dt, lo_lat, hi_lat, head_lim,
                                                             self.alpha * sig))
-        start = nlp.evaluate(v, w, A)
+        start = self._start(nlp, v, w, A)
         if rung is not None and (reason := self._uncertainty_too_wide(nlp)):
             return LawResult(0.0, v_mps=0.0, predicted=start.X[1:], stop_reason=reason,
                              uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
@@ -204,6 +204,26 @@ class RCLBNMPCLaw:
                                       sig_floor=np.minimum(rung.cov.least(rung.sig_loc)[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
         return self._report(nlp, start, result, gp is not None, rung, cov)
+
+    @staticmethod
+    def _start(nlp: CorridorNLP, v: np.ndarray, w: np.ndarray, A: np.ndarray) -> Iterate:
+        """Where the SQP starts: the warm start or, on a rate-limited steering, the one of least merit of it
+        and either curvature limit held over the horizon at its speeds (nmpc.best_start: far from the
+        curvature the steering has reached the cost is flat in the commands, and the SQP stalls where it
+        started; bench seed 4409, MATS s1021326272 at 1.22 m/s through rough ground: turn rates of
+        -0.03 to -0.14 rad/s against a -0.37 rad/s limit while the heading error grew from 1 to 13 deg).
+        `A` receives the chosen start's GP inputs."""
+        warm = nlp.evaluate(v, w, A)
+        if not nlp.problem.curvature_steered:
+            return warm
+        limit, best, best_a = nlp.w_limits(v), warm, A.copy()
+        for held in (limit, -limit):
+            a = np.empty_like(A)
+            cand = nlp.evaluate(v, held, a)
+            if cand.merit < best.merit:
+                best, best_a = cand, a
+        A[:] = best_a
+        return best
 
     def _corridor_of(self, ctx: StepContext) -> Corridor:
         if ctx.corridor is None:
