@@ -241,3 +241,35 @@ def test_a_place_counts_from_where_the_robot_could_still_slow_down_for_it():
     b = teach.beyond_at(34.0, 2.0)
     assert b.speed_mps == pytest.approx(GROWTH * 1.0) and b.factors[0] == pytest.approx(MARGIN * 4.0)
     assert teach.beyond_at(34.0, 0.0).factors is None and teach.factors_at(34.0, 0.0)[0] == 1.0
+
+
+def test_the_corridor_share_is_the_larger_of_the_lateral_towards_its_side_and_the_heading():
+    from services.controller.corridor import Corridor
+    c = Corridor(np.arange(0.0, 50.0, 0.5), 0.2, math.radians(20.0))
+    c.update(10.0, 20.0, 0.2, -0.4, math.radians(20.0))
+    assert c.share(5.0, 0.1, 0.0) == pytest.approx(0.5)
+    assert c.share(15.0, -0.1, 0.0) == pytest.approx(0.25)          # the right side is 0.4 m wide there
+    assert c.share(15.0, -0.1, math.radians(-15.0)) == pytest.approx(0.75)
+
+
+def test_a_pass_near_the_corridors_edge_holds_its_speed_there_and_a_calm_one_lets_it_grow_in_proportion():
+    """The latest pass (1.0 m/s) took 90 % of the corridor at 40-42 m and 40 % at 60-62 m: a plan there is
+    held to 1.0 m/s (errors grown in proportion to speed would pass GUARD_SHARE at once), to 2.0 m/s
+    (GUARD_SHARE / 0.4), and nowhere else; at 2 m/s with a 0.5 m/s^2 brake the place is counted from
+    4 m before it. A later pass that stays calm there lifts the hold."""
+    from services.controller.calibration import GUARD_SHARE
+    cal = SpreadCalibration(horizon=1, brake_mps2=0.5)
+    for s in np.arange(0.0, 100.0, 0.25):
+        share = 0.9 if 40.0 <= s < 42.0 else 0.4 if 60.0 <= s < 62.0 else 0.0
+        cal.observe(float(s), share)
+    drive_pass(cal, lambda s: 0.0)                                   # the pass's speeds: 1.0 m/s
+    nxt = cal.continued()
+    assert nxt.speed_cap_at(41.0).speed_mps == pytest.approx(1.0) and nxt.speed_cap_at(41.0).share == 0.9
+    assert nxt.speed_cap_at(61.0).speed_mps == pytest.approx(GUARD_SHARE / 0.4)
+    assert nxt.speed_cap_at(80.0).speed_mps == math.inf and nxt.speed_cap_at(None).speed_mps == math.inf
+    assert nxt.speed_cap_at(36.5, 0.0).speed_mps == math.inf
+    assert nxt.speed_cap_at(36.5, 2.0).speed_mps == pytest.approx(1.0)      # 4 m of braking before it
+    for s in np.arange(0.0, 100.0, 0.25):
+        nxt.observe(float(s), 0.1)
+    drive_pass(nxt, lambda s: 0.0, v_mps=1.2)
+    assert nxt.continued().speed_cap_at(41.0).speed_mps == pytest.approx(1.2 * GUARD_SHARE / 0.1)

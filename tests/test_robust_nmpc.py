@@ -839,3 +839,20 @@ def test_the_curvature_steps_jacobian_matches_finite_differences_of_the_move():
         d[i] = h
         fd = (nlp.evaluate(*nlp.moved(it, d)).r - nlp.evaluate(*nlp.moved(it, -d)).r) / (2 * h)
         assert np.allclose(fd, J[:, i], rtol=1e-3, atol=1e-4 * max(1.0, np.abs(fd).max())), i
+
+
+def test_rc_lb_nmpc_plans_no_faster_than_the_places_cap_and_says_so():
+    """Where the latest pass came near the corridor's edge (calibration.speed_cap_at), the law's speeds
+    stay at the cap over the whole plan and its status says why; a cap above the schedule changes nothing."""
+    from services.controller.calibration import PlaceCap
+    path = arc_path()
+    wide = Corridor(path.s, 1.0, math.radians(60))
+    base = ctx_for(path, path.pose_at(8.0), v=1.0, corridor=wide)
+    free = RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT).angular(base)
+    assert free.v_mps > 0.95 and "held to" not in free.note
+    law = RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT)
+    held = law.angular(dataclasses.replace(base, place_cap=PlaceCap(0.6, 0.9, 8.0)))
+    assert held.v_mps <= 0.6 + 1e-9 and np.all(law.last_step.result.iterate.v <= 0.6 + 1e-9)
+    assert "held to 0.60 m/s: the last pass here took 90% of the corridor at 8 m" in held.note
+    above = RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT).angular(dataclasses.replace(base, place_cap=PlaceCap(3.0, 0.2, 8.0)))
+    assert above.v_mps == pytest.approx(free.v_mps) and above.note == free.note

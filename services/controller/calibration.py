@@ -58,11 +58,17 @@ patch outgrow a lagging turn. So each place also keeps the fastest speed the lat
 teach pass, before trial 1) commanded there, the pass whose needs the place holds, and a plan faster than
 GROWTH times it is widened by the larger of those needs and the teach pass's (`beyond_at`): speed at a
 place the teach pass found rough grows by at most GROWTH per trial over what was last driven there
-(thesis 4: speed raised with experience). Not over the fastest pass ever: a trial 1 that crawled
-calmly through a rough patch the teach pass crossed at 1 m/s replaced the teach pass's needs there, and
-vouched by the teach pass's speed for 1.25 m/s, trial 2 entered the patch at 1.22 m/s with the calm
-crawl's needs; the patch turned the robot 15 deg in 1.5 s against a 1.5 deg sigma and it left its
-corridor by 0.3 m (bench seed 4409, MATS s1021326272).
+(thesis 4: speed raised with experience). Not over the fastest pass ever: that pass's needs were
+replaced, and a calm crawl through a place the teach pass found rough vouched by the teach pass's speed.
+
+Wherever the latest pass came near the corridor's edge, speed also grows by no more than its errors
+there allow (`speed_cap_at`, the scheduler's guard for a law that chooses its own speed): the largest
+share of the corridor the estimates took near a place (`observe`), grown in proportion to speed,
+reaches GUARD_SHARE at GUARD_SHARE / share times the pass's speed there; a plan is held below that, but
+never below that pass's own speed (slowing down is the spread's to decide, and a slide that acts per
+second grows as the robot slows). A MATS whose trial 1 crossed rough ground at 1 m/s within 0.225 of a
+0.245 m corridor entered it at 1.2-1.5 m/s in the next trials, where its yaw, growing with speed,
+outran the steering before the model's spread said so (bench seed 4409, s1021326272).
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
@@ -81,6 +87,7 @@ WINDOW = 150             # predictions per horizon step remembered (15 s at 10 H
 MAX_SCALE = 400.0        # 20x the modelled standard deviation
 PLACE_BIN_M = 2.0        # route distance per place whose needs are remembered across trials
 GROWTH = 1.25            # a place's latest pass vouches for plans up to this times its speed there
+GUARD_SHARE = 0.8        # of the corridor, that a place's errors grown in proportion to speed may reach
 
 
 @dataclass(frozen=True)
@@ -109,14 +116,25 @@ class Beyond:
     factors: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class PlaceCap:
+    """The speed the latest pass's errors near a place allow (inf: no limit), the share of the corridor
+    they took and where (route distance of the place's start)."""
+    speed_mps: float = math.inf
+    share: float = 0.0
+    at_m: float = math.nan
+
+
 class SpreadCalibration:
     def __init__(self, horizon: int, scales: np.ndarray | None = None,
                  recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None,
                  speeds: dict[int, float] | None = None, first: dict[int, np.ndarray] | None = None,
-                 brake_mps2: float = math.inf, missed: MissedVariance | None = None):
+                 brake_mps2: float = math.inf, missed: MissedVariance | None = None,
+                 shares: dict[int, float] | None = None):
         """`brake_mps2`: the deceleration the drive is held to (identified on the teach pass; inf: none
         seen): how far ahead a place must already be allowed for (_near). `missed`: the variance earlier
-        trials' predictions missed (copied)."""
+        trials' predictions missed (copied). `shares`: place bin -> the largest share of the corridor the
+        latest pass's errors took there."""
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -130,6 +148,8 @@ class SpreadCalibration:
         self.first = dict(first if first is not None else self.places_before)   # the teach pass's needs
         self.speeds_before = dict(speeds or {})      # place bin -> the fastest speed its latest pass commanded
         self.speeds_now: dict[int, float] = {}
+        self.shares_before = dict(shares or {})
+        self.shares_now: dict[int, float] = {}
         self.brake_mps2 = brake_mps2
         self.missed = missed.copy() if missed is not None and missed.horizon == horizon else MissedVariance(horizon)
 
@@ -139,7 +159,7 @@ class SpreadCalibration:
         counts from zero."""
         return SpreadCalibration(len(self.recent), self.scales, self.recent,
                                  {**self.places_before, **self.places_now}, {**self.speeds_before, **self.speeds_now},
-                                 self.first, self.brake_mps2, self.missed)
+                                 self.first, self.brake_mps2, self.missed, {**self.shares_before, **self.shares_now})
 
     def _near(self, s_m: float, v_mps: float) -> range:
         """The place bins a plan made at `s_m` at speed `v_mps` must already allow for: the neighbouring
@@ -181,6 +201,27 @@ class SpreadCalibration:
         seen = [self.speeds_before[i] for i in near if i in self.speeds_before]
         kappa = _widened(self.factors_at(s_m, v_mps), np.max(first, axis=0))
         return Beyond(GROWTH * min(seen) if seen else math.inf, kappa)
+
+    def observe(self, s_m: float, share: float) -> None:
+        """The estimate at route distance `s_m` took `share` of the corridor there (Corridor.share)."""
+        if math.isfinite(s_m) and math.isfinite(share):
+            b = math.floor(s_m / PLACE_BIN_M)
+            self.shares_now[b] = max(self.shares_now.get(b, 0.0), share)
+
+    def speed_cap_at(self, s_m: float | None, v_mps: float = 0.0) -> PlaceCap:
+        """The fastest plan the latest passes' errors over the places near (_near) allow (module
+        docstring): the lowest over those places of their pass's speed times max(1, GUARD_SHARE / share)."""
+        if s_m is None or not math.isfinite(s_m):
+            return PlaceCap()
+        out = PlaceCap()
+        for b in self._near(s_m, v_mps):
+            share, v = self.shares_before.get(b, 0.0), self.speeds_before.get(b, 0.0)
+            if share <= 0.0 or v <= 0.0:
+                continue
+            cap = v * max(1.0, GUARD_SHARE / share)
+            if cap < out.speed_mps:
+                out = PlaceCap(cap, share, b * PLACE_BIN_M)
+        return out
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:
         """The law's predictions of step k made at `tick`: prediction j is for the estimate of tick + j."""

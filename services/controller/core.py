@@ -47,8 +47,9 @@ class ControllerCore:
         self.floors = self.calibration.floors_by_speed()
         beyond = self.calibration.beyond_at(self.s_m, self.v_mps)
         factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
+        cap = self.calibration.speed_cap_at(self.s_m, self.v_mps) if self.tracker.corridor is not None else None
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors,
-                                     (beyond.speed_mps, factors), self.floors if self.floors.any() else None)
+                                     (beyond.speed_mps, factors), self.floors if self.floors.any() else None, cap)
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         self.v_mps = decision.v_mps
         if decision.state == "stopped":
@@ -89,6 +90,8 @@ class ControllerCore:
         th = float(self.path.tangent_at(dist))
         n = np.array([-math.sin(th), math.cos(th)])
         check = (loc.capture_tick, lateral, heading, float(n @ cov[:2, :2] @ n), float(cov[2, 2]))
+        if self.tracker.corridor is not None:
+            self.calibration.observe(dist, self.tracker.corridor.share(dist, lateral, heading))
         kappa = float(np.interp(dist, self.path.s, self.path.curvature))
         candidate = self.jumps.add(loc.capture_tick, dist, lateral, heading, kappa)
         if self._deferred is not None:

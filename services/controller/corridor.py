@@ -34,6 +34,13 @@ class Corridor:
         i = np.clip(np.searchsorted(self.s, np.asarray(s_m, dtype=float)), 0, len(self.s) - 1)
         return self.right[i], self.left[i], self.heading[i]
 
+    def share(self, s_m: float, lateral_m: float, heading_rad: float) -> float:
+        """How much of the corridor at s_m (lateral, towards the side it lies on, or heading) the errors
+        take: 1 on its edge."""
+        lo, hi, h = (float(x) for x in self.at(s_m))
+        lat = lateral_m / hi if lateral_m >= 0.0 else lateral_m / lo
+        return max(lat, abs(heading_rad) / h)
+
     def contains(self, s_m: float, lateral_m: float, heading_rad: float,
                  tolerance: tuple[float, float] = (0.0, 0.0)) -> str:
         """'' when (lateral, heading) is inside the corridor at s_m, or outside it by no more than

@@ -13,6 +13,7 @@ import numpy as np
 from common.path import Path
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.calibration import PlaceCap
 from services.controller.missed_variance import FloorsBySpeed
 
 
@@ -52,6 +53,9 @@ class StepContext:
     # the calibration's floors on each horizon step's model share of the predicted variance, lateral and
     # heading, by the plan's speed (calibration.floors_by_speed); None: none
     spread_floors: FloorsBySpeed | None = None
+    # the speed the latest pass's errors near here allow (calibration.speed_cap_at): C-/RC-LB-NMPC plan no
+    # faster; None: no limit
+    place_cap: PlaceCap | None = None
     loc_age_s: float = 0.0               # how old `pose` is (now - its capture): what the feedback lags by
 
 

@@ -67,6 +67,18 @@ def _floors_at(ctx: StepContext, v: np.ndarray) -> SpreadFloors | None:
     return None if ctx.spread_floors is None else ctx.spread_floors.at(float(np.max(v)))
 
 
+def _capped(ctx: StepContext) -> tuple[StepContext, str]:
+    """The step's context with its speeds held to the place's cap (calibration.speed_cap_at), and what the
+    status says of it ("" where it does not bind)."""
+    cap = ctx.place_cap
+    if cap is None or not math.isfinite(cap.speed_mps):
+        return ctx, ""
+    c, f = cap.speed_mps, ctx.speed_at
+    note = f"held to {c:.2f} m/s: the last pass here took {cap.share:.0%} of the corridor at {cap.at_m:.0f} m" \
+        if c < ctx.v_mps else ""
+    return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), c)), note
+
+
 def _estimate_sigmas(ctx: StepContext) -> tuple[float, float]:
     """The estimate's 1-sigma across the route and in heading. An estimate outside the corridor by less
     cannot tell a robot at the edge from one just inside: the law then steers it back (its plan pays the
@@ -169,6 +181,7 @@ class RCLBNMPCLaw:
         why = corridor.contains(ctx.s_m, ctx.e_lat_m, ctx.e_head_rad, _estimate_sigmas(ctx))
         if why:
             return LawResult(0.0, v_mps=0.0, stop_reason=f"{why}: stopped")
+        ctx, capped = _capped(ctx)
         gp = self.model_for(dataclasses.replace(ctx, v_mps=self._window_speed(ctx)))
         probes = () if self.last_plan is None else (shifted(self.last_step.result.iterate.w),)
         base, _ = build_problem(ctx, s, dt, gp, probes)
@@ -203,7 +216,7 @@ class RCLBNMPCLaw:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
                                       sig_floor=np.minimum(rung.cov.least(rung.sig_loc)[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
-        return self._report(nlp, start, result, gp is not None, rung, cov)
+        return self._report(nlp, start, result, gp is not None, rung, cov, capped)
 
     @staticmethod
     def _start(nlp: CorridorNLP, v: np.ndarray, w: np.ndarray, A: np.ndarray) -> Iterate:
@@ -307,7 +320,7 @@ class RCLBNMPCLaw:
         return cov.widened(raw, loc), loc, raw
 
     def _report(self, nlp: CorridorNLP, start: Iterate, result: CorridorResult, learned: bool,
-                rung: Rung | None, cov: HorizonCovariance) -> LawResult:
+                rung: Rung | None, cov: HorizonCovariance, capped: str = "") -> LawResult:
         it = result.iterate
         sig, loc, raw = (np.zeros_like(it.sig),) * 3 if rung is None else self._plan_spread(nlp, it, cov)
         cost = 0.5 * float(it.r @ it.r)
@@ -319,4 +332,4 @@ class RCLBNMPCLaw:
                                                        speed_scale=1.0 if rung is None else rung.scale,
                                                        violation=it.violation, **_horizon_sigmas(sig, loc, raw),
                                                        spread_kappa=_kappa(cov)),
-                         note=held_note(nlp.problem.model))
+                         note="; ".join(n for n in (held_note(nlp.problem.model), capped) if n))

@@ -23,6 +23,7 @@ from services.controller.actuator import ActuatorLag
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
+from services.controller.calibration import PlaceCap
 from services.controller.missed_variance import FloorsBySpeed
 
 LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
@@ -124,13 +125,14 @@ class PathTracker:
              command_at: Callable[[int], tuple[float, float] | None] | None = None,
              spread_factors: tuple[float, ...] = (),
              spread_beyond: tuple[float, tuple[float, ...]] = (float("inf"), ()),
-             spread_floors: FloorsBySpeed | None = None) -> Decision:
+             spread_floors: FloorsBySpeed | None = None, place_cap: PlaceCap | None = None) -> Decision:
         """`tick`: the robot tick this command will be applied at; `command_at(t)`: the command applied
         at tick t. With both, the law learns which commands were applied since the estimate's capture.
         `spread_factors`: the online calibration's factors on the predicted spread per step (calibration.py);
         `spread_beyond`: from which speed a plan outruns the place's passes, and the factors then;
         `spread_floors`: its floors per step under the model's share of the variance (lateral, heading),
-        by the plan's speed."""
+        by the plan's speed; `place_cap`: the speed the latest pass's errors here allow a law that chooses
+        its speed."""
         if loc is not None and loc.has_pose:
             self._last_ok = loc
         last = self._last_ok
@@ -188,7 +190,8 @@ class PathTracker:
                           delayed_cmds=delayed, cmd_before_capture=before, xi_capture=xi_capture, xi_now=xi_now,
                           pose_cov=self.route_cov(last), corridor=self.corridor, v_max_mps=self.limits.v_max_mps,
                           spread_factors=spread_factors, spread_beyond_mps=spread_beyond[0],
-                          spread_factors_beyond=spread_beyond[1], spread_floors=spread_floors, loc_age_s=age)
+                          spread_factors_beyond=spread_beyond[1], spread_floors=spread_floors, loc_age_s=age,
+                          place_cap=place_cap)
         res, reason = self._run_law(ctx)
         if res.stop_reason:
             self.halted = res.stop_reason
