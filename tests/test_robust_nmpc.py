@@ -469,16 +469,22 @@ def test_a_faster_rung_never_scales_a_crawls_turn_rate_corrections_up():
     assert np.all(np.abs(correction) <= 0.5 + 1e-9) and np.all(np.abs(correction) > 0.4)
 
 
-def _ladder_where_nothing_fits(slow_factor: float):
-    """The ladder on an arc with a band no rung's spread fits; rungs at or below 0.5 m/s are tested with
-    their spread widened by `slow_factor` (a place's remembered widening that does not fade at a crawl),
-    the faster ones with the model's own."""
+def _ladder_on_the_arc():
+    """The speed ladder's inputs at 20 m along the arc at 1 m/s, no learned model: (settings, problem,
+    speeds, turn rates, the covariance model)."""
     path = arc_path()
     ctx = ctx_for(path, path.pose_at(20.0), v=1.0)
     s = NMPCSettings()
     base, _ = build_problem(ctx, s, DT, None)
-    v, w = base.v.copy(), base.w_ref.copy()
-    narrow = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(None, s), DT, s.sp_gamma)
+    cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(None, s), DT, s.sp_gamma)
+    return s, base, base.v.copy(), base.w_ref.copy(), cov
+
+
+def _ladder_where_nothing_fits(slow_factor: float):
+    """The ladder on an arc with a band no rung's spread fits; rungs at or below 0.5 m/s are tested with
+    their spread widened by `slow_factor` (a place's remembered widening that does not fade at a crawl),
+    the faster ones with the model's own."""
+    s, base, v, w, narrow = _ladder_on_the_arc()
     wide = dataclasses.replace(narrow, factors=np.full(base.K, slow_factor))
     cap = np.full((base.K, 3), 1e-4)
     rungs = [_try_rung(k, base, v, w, wide, np.empty((base.K, 9)), s.v_min_mps, (0.5, narrow))
@@ -512,12 +518,7 @@ def _ladder_after_a_heading_surprise(v_then: float):
     """The ladder on an arc at 1 m/s after a 5 deg heading surprise at every horizon step, made at `v_then`,
     in a band of 3 sigma = 12 deg: the rung it takes with the floors by speed, and every rung's overflow
     with the floors in full."""
-    path = arc_path()
-    ctx = ctx_for(path, path.pose_at(20.0), v=1.0)
-    s = NMPCSettings()
-    base, _ = build_problem(ctx, s, DT, None)
-    v, w = base.v.copy(), base.w_ref.copy()
-    cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(None, s), DT, s.sp_gamma)
+    s, base, v, w, cov = _ladder_on_the_arc()
     cap = np.column_stack([np.full(base.K, np.inf), np.full(base.K, 1.0), np.full(base.K, math.radians(12.0))])
     memory = MissedVariance(base.K)
     for j in range(1, base.K + 1):
