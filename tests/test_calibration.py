@@ -250,6 +250,9 @@ def test_the_corridor_share_is_the_larger_of_the_lateral_towards_its_side_and_th
     assert c.share(5.0, 0.1, 0.0) == pytest.approx(0.5)
     assert c.share(15.0, -0.1, 0.0) == pytest.approx(0.25)          # the right side is 0.4 m wide there
     assert c.share(15.0, -0.1, math.radians(-15.0)) == pytest.approx(0.75)
+    c.update(30.0, 40.0, 0.3, 0.0, math.radians(20.0))                # the route on the corridor's right edge
+    assert c.share(35.0, 0.15, 0.0) == pytest.approx(0.5) and c.share(35.0, -0.01, 0.0) == math.inf
+    assert c.share(35.0, 0.0, 0.0) == 0.0
 
 
 def test_a_pass_near_the_corridors_edge_holds_its_speed_there_and_a_calm_one_lets_it_grow_in_proportion():

@@ -203,8 +203,9 @@ class SpreadCalibration:
         return Beyond(GROWTH * min(seen) if seen else math.inf, kappa)
 
     def observe(self, s_m: float, share: float) -> None:
-        """The estimate at route distance `s_m` took `share` of the corridor there (Corridor.share)."""
-        if math.isfinite(s_m) and math.isfinite(share):
+        """The estimate at route distance `s_m` took `share` of the corridor there (Corridor.share; inf:
+        beyond an edge the route lies on)."""
+        if math.isfinite(s_m) and not math.isnan(share):
             b = math.floor(s_m / PLACE_BIN_M)
             self.shares_now[b] = max(self.shares_now.get(b, 0.0), share)
 

@@ -6,6 +6,8 @@ widened per stretch at run time (a guidance module or an operator, over Zenoh: `
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -35,11 +37,10 @@ class Corridor:
         return self.right[i], self.left[i], self.heading[i]
 
     def share(self, s_m: float, lateral_m: float, heading_rad: float) -> float:
-        """How much of the corridor at s_m (lateral, towards the side it lies on, or heading) the errors
-        take: 1 on its edge."""
+        """How much of the corridor at s_m (lateral, from the route towards the edge on its side, or
+        heading) the errors take: 1 on its edge; inf on a side whose edge is not beyond the route."""
         lo, hi, h = (float(x) for x in self.at(s_m))
-        lat = lateral_m / hi if lateral_m >= 0.0 else lateral_m / lo
-        return max(lat, abs(heading_rad) / h)
+        return max(_towards(lateral_m, hi if lateral_m >= 0.0 else lo), abs(heading_rad) / h)
 
     def contains(self, s_m: float, lateral_m: float, heading_rad: float,
                  tolerance: tuple[float, float] = (0.0, 0.0)) -> str:
@@ -55,3 +56,11 @@ class Corridor:
             return (f"heading error {np.degrees(heading_rad):+.1f} deg outside the corridor "
                     f"(+-{np.degrees(h):.1f} deg){beyond}")
         return ""
+
+
+def _towards(lateral_m: float, edge_m: float) -> float:
+    """The share of the way from the route to `edge_m` that `lateral_m` lies (inf beyond an edge that
+    is not beyond the route)."""
+    if lateral_m == 0.0:
+        return 0.0 if edge_m != 0.0 else 1.0
+    return lateral_m / edge_m if lateral_m * edge_m > 0.0 else math.inf
