@@ -495,25 +495,6 @@ def test_after_a_descent_the_ladder_climbs_back_only_to_a_rung_that_fits_with_ro
     assert fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 1, a_out, climb_fit=CLIMB_FIT).index == 1
 
 
-def test_the_ladder_does_not_climb_while_the_command_is_pinned_at_its_turn_limit():
-    """Two steps on the arc with a corridor that fits every rung: after a step whose first turn rate was
-    the drive's limit the law keeps last step's rung; one step later, free of the limit, it climbs."""
-    path = arc_path()
-    ctx = ctx_for(path, path.pose_at(20.0), v=1.0, corridor=Corridor(path.s, 2.0, math.radians(80)))
-    law = RCLBNMPCLaw(NMPCSettings(), DT)
-    law.angular(ctx)
-    it = law.last_step.result.iterate
-    limit = float(law.last_step.nlp.w_limits(it.v[:1])[0])
-    assert law._climb_fit(3) == 1.0
-    pinned = dataclasses.replace(it, w=np.concatenate([[limit], it.w[1:]]))
-    law.last_step = dataclasses.replace(law.last_step, result=dataclasses.replace(law.last_step.result, iterate=pinned))
-    assert law._climb_fit(3) == -math.inf
-    s, base, v, w, cov = _ladder_on_the_arc()
-    cap = np.full((base.K, 3), np.inf)
-    assert fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 3, np.empty((base.K, 9)), climb_fit=-math.inf).index == 3
-    assert fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 3, np.empty((base.K, 9))).index == 2
-
-
 def _ladder_where_nothing_fits(slow_factor: float):
     """The ladder on an arc with a band no rung's spread fits; rungs at or below 0.5 m/s are tested with
     their spread widened by `slow_factor` (a place's remembered widening that does not fade at a crawl),

@@ -41,7 +41,7 @@ from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
 from services.controller.missed_variance import SpreadFloors
 from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import CLIMB_FIT, PINNED, SETTLE_S, Rung, fastest_fitting_rung
+from services.controller.speed_ladder import CLIMB_FIT, SETTLE_S, Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
@@ -278,25 +278,13 @@ class RCLBNMPCLaw:
         beyond = None
         if ctx.spread_factors_beyond and math.isfinite(ctx.spread_beyond_mps):
             beyond = (ctx.spread_beyond_mps, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond)))
+        settling = last is not None and self._since_descent * self.dt < SETTLE_S
         # the drive's turn-rate limit at any speed (its curvature limit, if any, left out: speed_ladder.py)
         rung = fastest_fitting_rung(problem, v, w, cov, cap, self.alpha, ctx.w_limit_at(math.inf), last, A, beyond,
-                                    ctx.spread_floors, self._climb_fit(last))
+                                    ctx.spread_floors, CLIMB_FIT if settling else 1.0)
         self._since_descent = 0 if last is not None and rung.index > last else self._since_descent + 1
         self._rung = rung.index
         return rung
-
-    def _climb_fit(self, last: int | None) -> float:
-        """The overflow a faster rung than last step's must keep to be taken (speed_ladder.py): none while
-        the command sits at its turn limit (what pins it grows with speed, per metre on an Ackermann's
-        steering rate, per second on a skid-steer's turn rate: bench seed 2851, MATS s1338784112 sped up
-        from 1.37 to 1.65 m/s with its curvature at the limit and a heading error growing past 9 deg),
-        CLIMB_FIT within SETTLE_S of a descent, else a plain fit."""
-        if last is None:
-            return 1.0
-        it = self.last_step.result.iterate
-        if abs(float(it.w[0])) >= PINNED * float(self.last_step.nlp.w_limits(it.v[:1])[0]):
-            return -math.inf
-        return CLIMB_FIT if self._since_descent * self.dt < SETTLE_S else 1.0
 
     def _uncertainty_too_wide(self, nlp: CorridorNLP) -> str:
         """Why the robot must stop: the first predicted step's alpha-sigma region does not fit ("" if it does)."""

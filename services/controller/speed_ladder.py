@@ -11,8 +11,7 @@ one that misses by least); the SQP then fine-tunes below the cap. Without it the
 the scheduled speed, the slack price dominates the cost and the plan flips between steps. Within
 SETTLE_S of a descent it climbs only to a rung that fits with room to spare (CLIMB_FIT): a rung that
 fits by a hair misses at its own speed next step, and the command flipped between two rungs every period
-(a MATS at 1.47 <-> 1.78 m/s for 20 s, 218 reversals in one trial, bench seed 4409, s1021326272). And
-it does not climb while the command is pinned at its turn limit (PINNED). A rung faster than the passes over the place vouch for is
+(a MATS at 1.47 <-> 1.78 m/s for 20 s, 218 reversals in one trial, bench seed 4409, s1021326272). A rung faster than the passes over the place vouch for is
 widened by the teach pass's needs there (calibration.beyond_at): its covariance model is the rung's own.
 """
 from __future__ import annotations
@@ -30,7 +29,6 @@ SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)   # sha
 TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's turn-rate limit
 CLIMB_FIT = 0.9          # overflow a rung must keep to be climbed back to within SETTLE_S of a descent
 SETTLE_S = 1.0
-PINNED = 0.97            # of the turn limit at its speed: a command this close to it has nothing to spare
 
 
 @dataclass(frozen=True)
@@ -93,7 +91,7 @@ def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov
     most alpha * sigma may take of the corridor; `w_rate_cap`: the drive's turn-rate limit at any speed.
     `a_out` (K, 9) receives the chosen rung's GP inputs. `beyond`: the speed above which a rung is tested
     with the other covariance model; `floors`: the calibration's, taken at each rung's speed;
-    `climb_fit`: the overflow a rung faster than last step's must keep to be taken (<= 1; -inf: none is).
+    `climb_fit`: the overflow a rung faster than last step's must keep to be taken (<= 1).
 
     Slower is not always narrower: the prior's speed-independent terms, a place's remembered widening and
     what a crawl itself missed do not fade at a crawl, and a side slope whose slide acts per second needs
