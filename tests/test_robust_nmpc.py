@@ -19,7 +19,7 @@ from services.controller.horizon_covariance import HorizonCovariance, variance_m
 from services.controller.laws import StepContext
 from services.controller.nmpc import build_problem
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import CLIMB_FIT, SPEED_LADDER, _try_rung, fastest_fitting_rung, overflow
+from services.controller.speed_ladder import SPEED_LADDER, _try_rung, fastest_fitting_rung, overflow
 from services.controller.minmax import SIGNS
 from services.controller.missed_variance import MissedVariance
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
@@ -478,21 +478,6 @@ def _ladder_on_the_arc():
     base, _ = build_problem(ctx, s, DT, None)
     cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(None, s), DT, s.sp_gamma)
     return s, base, base.v.copy(), base.w_ref.copy(), cov
-
-
-def test_after_a_descent_the_ladder_climbs_back_only_to_a_rung_that_fits_with_room_to_spare():
-    """A band the 0.85 rung's spread fills to 95 %: from the 0.7 rung the ladder climbs to it in plain
-    steps, and stays at 0.7 within a second of a descent (CLIMB_FIT), where a rung that fits by a hair
-    was left again next step: the command flipped between two rungs every period."""
-    s, base, v, w, cov = _ladder_on_the_arc()
-    a_out = np.empty((base.K, 9))
-    rung1 = _try_rung(1, base, v, w, cov, a_out, s.v_min_mps)
-    cap = np.full((base.K, 3), np.inf)
-    cap[:, 1:3] = 3.0 * rung1.sig[:, 1:3] / 0.95
-    assert overflow(rung1, cap, 3.0, 2.0) == pytest.approx(0.95)
-    assert fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 2, a_out).index == 1
-    assert fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 2, a_out, climb_fit=CLIMB_FIT).index == 2
-    assert fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 1, a_out, climb_fit=CLIMB_FIT).index == 1
 
 
 def _ladder_where_nothing_fits(slow_factor: float):

@@ -41,7 +41,7 @@ from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
 from services.controller.missed_variance import SpreadFloors
 from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import CLIMB_FIT, SETTLE_S, Rung, fastest_fitting_rung
+from services.controller.speed_ladder import Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
@@ -173,7 +173,6 @@ class RCLBNMPCLaw:
         self.name = "rc-lb-nmpc" if self.alpha > 0 else "c-lb-nmpc"
         self._qp: CorridorQP | None = None
         self._rung = 0                       # the speed ladder's rung of the last step
-        self._since_descent = math.inf       # steps since the ladder last went down a rung
         self.last_plan: Plan | None = None
         self.last_step: CorridorStep | None = None
 
@@ -278,11 +277,9 @@ class RCLBNMPCLaw:
         beyond = None
         if ctx.spread_factors_beyond and math.isfinite(ctx.spread_beyond_mps):
             beyond = (ctx.spread_beyond_mps, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond)))
-        settling = last is not None and self._since_descent * self.dt < SETTLE_S
         # the drive's turn-rate limit at any speed (its curvature limit, if any, left out: speed_ladder.py)
         rung = fastest_fitting_rung(problem, v, w, cov, cap, self.alpha, ctx.w_limit_at(math.inf), last, A, beyond,
-                                    ctx.spread_floors, CLIMB_FIT if settling else 1.0)
-        self._since_descent = 0 if last is not None and rung.index > last else self._since_descent + 1
+                                    ctx.spread_floors)
         self._rung = rung.index
         return rung
 

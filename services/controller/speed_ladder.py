@@ -8,11 +8,9 @@ turn-rate limit: a plan pinned at the limit cannot correct anything. Only the ra
 slowing down relieves; an Ackermann's curvature limit binds at every speed alike (the SQP keeps to it).
 The ladder climbs one rung per step at most and descends as far as needed (where no rung fits, to the
 one that misses by least); the SQP then fine-tunes below the cap. Without it the band is infeasible at
-the scheduled speed, the slack price dominates the cost and the plan flips between steps. Within
-SETTLE_S of a descent it climbs only to a rung that fits with room to spare (CLIMB_FIT): a rung that
-fits by a hair misses at its own speed next step, and the command flipped between two rungs every period
-(a MATS at 1.47 <-> 1.78 m/s for 20 s, 218 reversals in one trial, bench seed 4409, s1021326272). A rung faster than the passes over the place vouch for is
-widened by the teach pass's needs there (calibration.beyond_at): its covariance model is the rung's own.
+the scheduled speed, the slack price dominates the cost and the plan flips between steps. A rung faster
+than the passes over the place vouch for is widened by the teach pass's needs there
+(calibration.beyond_at): its covariance model is the rung's own.
 """
 from __future__ import annotations
 
@@ -27,8 +25,6 @@ from services.controller.missed_variance import FloorsBySpeed
 
 SPEED_LADDER = (1.0, 0.85, 0.7, 0.58, 0.48, 0.4, 0.32, 0.25, 0.18, 0.12)   # shares of the scheduled speeds
 TURN_HEADROOM = 0.9      # a rung's turn rates stay below this share of the drive's turn-rate limit
-CLIMB_FIT = 0.9          # overflow a rung must keep to be climbed back to within SETTLE_S of a descent
-SETTLE_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -85,13 +81,12 @@ def overflow(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> fl
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
                          cap: np.ndarray, alpha: float, w_rate_cap: float, last_index: int | None,
                          a_out: np.ndarray, beyond: tuple[float, HorizonCovariance] | None = None,
-                         floors: FloorsBySpeed | None = None, climb_fit: float = 1.0) -> Rung:
+                         floors: FloorsBySpeed | None = None) -> Rung:
     """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits;
     where none does, the one that misses by least (`overflow`; the faster of equals). `cap` (K, 3): the
     most alpha * sigma may take of the corridor; `w_rate_cap`: the drive's turn-rate limit at any speed.
     `a_out` (K, 9) receives the chosen rung's GP inputs. `beyond`: the speed above which a rung is tested
-    with the other covariance model; `floors`: the calibration's, taken at each rung's speed;
-    `climb_fit`: the overflow a rung faster than last step's must keep to be taken (<= 1).
+    with the other covariance model; `floors`: the calibration's, taken at each rung's speed.
 
     Slower is not always narrower: the prior's speed-independent terms, a place's remembered widening and
     what a crawl itself missed do not fade at a crawl, and a side slope whose slide acts per second needs
@@ -101,10 +96,11 @@ def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov
     best, best_miss, best_a = None, math.inf, np.empty_like(a_out)
     for k in range(first, len(SPEED_LADDER)):
         rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps, beyond, floors)
-        miss = overflow(rung, cap, alpha, w_rate_cap)
-        if miss <= (climb_fit if last_index is not None and k < last_index else 1.0):
+        t = alpha * rung.sig[1:]
+        if (np.all(t[:, 1] <= cap[1:, 1]) and np.all(t[:, 2] <= cap[1:, 2])
+                and np.all(np.abs(rung.w) <= TURN_HEADROOM * w_rate_cap)):
             return rung
-        if miss < best_miss:
+        if (miss := overflow(rung, cap, alpha, w_rate_cap)) < best_miss:
             best, best_miss = rung, miss
             best_a[:] = a_out
     a_out[:] = best_a
