@@ -480,6 +480,26 @@ def _ladder_on_the_arc():
     return s, base, base.v.copy(), base.w_ref.copy(), cov
 
 
+def test_between_a_rung_that_fits_and_one_that_misses_the_ladder_drives_where_the_fit_ends():
+    """A band the 0.85 rung's spread overflows by 5 %: from the 0.7 rung the ladder drives between the
+    two, at a speed that fits (its own test) and is within the last few percent of the band, not at
+    0.7 and not flipping to 0.85 the next step; where the 0.85 rung fits it is taken as it is."""
+    s, base, v, w, cov = _ladder_on_the_arc()
+    a_out = np.empty((base.K, 9))
+    rung1 = _try_rung(1, base, v, w, cov, a_out, s.v_min_mps)
+    cap = np.full((base.K, 3), np.inf)
+    cap[:, 1:3] = 3.0 * rung1.sig[:, 1:3] / 1.05
+    chosen = fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 2, a_out)
+    assert chosen.index == 2 and SPEED_LADDER[2] < chosen.scale < SPEED_LADDER[1]
+    assert 0.9 < overflow(chosen, cap, 3.0, 2.0) <= 1.0
+    assert np.allclose(chosen.v, np.clip(chosen.scale * base.v, s.v_min_mps, None))
+    A = np.empty_like(a_out)     # the GP inputs handed back are the chosen speed's
+    _try_rung(2, base, v, w, cov, A, s.v_min_mps, scale=chosen.scale)
+    assert np.allclose(a_out, A)
+    cap[:, 1:3] = 3.0 * rung1.sig[:, 1:3] / 0.99
+    assert fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 2, a_out).scale == SPEED_LADDER[1]
+
+
 def _ladder_where_nothing_fits(slow_factor: float):
     """The ladder on an arc with a band no rung's spread fits; rungs at or below 0.5 m/s are tested with
     their spread widened by `slow_factor` (a place's remembered widening that does not fade at a crawl),
