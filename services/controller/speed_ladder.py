@@ -7,11 +7,11 @@ the route at its speeds (with last step's corrections, scaled) keep some headroo
 turn-rate limit: a plan pinned at the limit cannot correct anything. Only the rate limit counts, the one
 slowing down relieves; an Ackermann's curvature limit binds at every speed alike (the SQP keeps to it).
 The ladder climbs one rung per step at most and descends as far as needed (where no rung fits, to the
-one that misses by least), and between a rung that fits and the one above it that does not, it drives
-at the speed where the fit ends, if that fits (_between); the SQP then fine-tunes below the cap. Without it the band is infeasible at
-the scheduled speed, the slack price dominates the cost and the plan flips between steps. A rung faster
-than the passes over the place vouch for is widened by the teach pass's needs there
-(calibration.beyond_at): its covariance model is the rung's own.
+one that misses by least); the SQP then fine-tunes below the cap. Without it the band is infeasible at
+the scheduled speed, the slack price dominates the cost and the plan flips between steps. Between a rung
+that fits and the one above it that does not, the ladder drives at the speed where the fit ends, if that
+fits (_between). A rung faster than the passes over the place vouch for is widened by the teach pass's
+needs there (calibration.beyond_at): its covariance model is the rung's own.
 """
 from __future__ import annotations
 
@@ -43,8 +43,6 @@ class Rung:
     sig_loc: np.ndarray     # (K, 3) the localizer's share of them (never widened)
     cov: HorizonCovariance  # the covariance model it was tested with
     scale: float            # the share of the scheduled speeds it drives: its rung's, or one between two
-
-
 
 
 def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
