@@ -165,17 +165,21 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
 def outside_3sigma_fraction(route: Path, truth_path: Path, rec: TrialRecord) -> float | None:
     """The share of predictions whose realized error one horizon later (truth, lateral and heading
     against the route) left the predicted 3-sigma region; None for a law without a predicted spread.
-    The prediction of the status of tick k is x_K of tick k + K in the controller's route frame."""
-    truth = {t.tick: t for t in rec.truth}
+    The prediction of the status of tick k is x_K of tick k + K in the controller's route frame. The truth
+    is projected along its own progress, as truth_series does: where a loop closes, the nearest vertex
+    alone can be the route's first one, whose taught heading differs from the last one's."""
+    truth, hint = {}, 0
+    for t in rec.truth:
+        truth[t.tick] = real = truth_path.project((t.x_world_m, t.y_world_m, t.theta_world_rad), hint)
+        hint = real.vertex
     checked = outside = 0
     for s in rec.stepped_status():
         if s.state != "tracking" or not s.pred_sigma_lat_m or not s.pred_x_m:
             continue
-        t = truth.get(s.tick + len(s.pred_x_m))
-        if t is None:
+        real = truth.get(s.tick + len(s.pred_x_m))
+        if real is None:
             continue
         pred = route.project((s.pred_x_m[-1], s.pred_y_m[-1], s.pred_theta_rad[-1]), s.vertex)
-        real = truth_path.project((t.x_world_m, t.y_world_m, t.theta_world_rad))
         d_head = math.remainder(real.heading_rad - pred.heading_rad, 2 * math.pi)
         checked += 1
         outside += (abs(real.lateral_m - pred.lateral_m) > 3.0 * s.pred_sigma_lat_m[-1]
