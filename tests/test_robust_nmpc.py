@@ -591,6 +591,30 @@ def test_robust_law_steers_back_an_estimate_outside_by_less_than_its_own_sigma()
     assert far.v_mps == 0.0 and "by more than the estimate's 1 sigma" in far.stop_reason
 
 
+def test_at_the_slowest_rung_the_law_stops_before_the_next_steps_spread_leaves_the_corridor():
+    """A spread widened 6x (calibration factors of 6 on the variance) fits only the ladder's bottom rung.
+    On the route and 5 cm off it, the robot drives on at that rung; 15 cm off a 0.2 m corridor, the next
+    step's 3-sigma reaches beyond it and the law stops and says why. With the spread unwidened, the same
+    15 cm is steered back at a faster rung: the stop is for the slowest speed only."""
+    path = arc_path()
+    corridor = Corridor(path.s, 0.2, math.radians(15))
+    cov = np.diag([0.02 ** 2, 0.02 ** 2, 1e-4])
+
+    def step(offset_m, factor):
+        ctx = ctx_for(path, path.pose_at(5.0) + np.array([0, offset_m, 0]), corridor=corridor, cov=cov)
+        law = RCLBNMPCLaw(NMPCSettings(), DT)
+        return law.angular(dataclasses.replace(ctx, spread_factors=(factor,) * 10)), law
+
+    for offset_m in (0.0, 0.05):
+        out, law = step(offset_m, 6.0)
+        assert law._rung == len(SPEED_LADDER) - 1 and out.v_mps > 0 and not out.stop_reason
+    out, law = step(0.15, 6.0)
+    assert out.v_mps == 0.0 and out.stop_reason.startswith("at the slowest speed the plan's next lateral error +0.150 m")
+    assert "reaches beyond the corridor [-0.20, +0.20] m" in out.stop_reason
+    out, law = step(0.15, 1.0)
+    assert law._rung < len(SPEED_LADDER) - 1 and out.v_mps > 0 and not out.stop_reason
+
+
 @pytest.mark.integration
 def test_rc_lb_nmpc_starting_outside_the_corridor_stops_and_says_why(tmp_path, scenario_file):
     """Through the real services: a repeat that starts 0.4 m off a 0.3 m corridor never moves."""

@@ -19,7 +19,11 @@ Violating a tightened limit is possible only through a slack with a heavy L1 pri
 feasible and the law says when it had to use it; beyond the first step the band is no narrower than a
 path follower's correction can reach (band_reach.py), so that price does not buy a spin at a crawl.
 When even the first predicted step's 3-sigma region does not fit inside the corridor, or the robot is
-already outside it, the law stops the robot and says why.
+already outside it, the law stops the robot and says why. At the ladder's slowest rung it also stops
+where the plan's first predicted step, its lateral 3-sigma region around it, reaches beyond the corridor: no
+slower speed is left to try, and a crawl on a side slope drifts out while it corrects (bench seed 6607,
+ROC6 s2103228252: at 0.05-0.13 m/s in a corner on a 14.5 deg slope, from 0.01 to 0.19 m of a 0.172 m
+corridor).
 """
 from __future__ import annotations
 
@@ -41,7 +45,7 @@ from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
 from services.controller.missed_variance import SpreadFloors
 from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import Rung, fastest_fitting_rung
+from services.controller.speed_ladder import SPEED_LADDER, Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
@@ -216,6 +220,9 @@ class RCLBNMPCLaw:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
                                       sig_floor=np.minimum(rung.cov.least(rung.sig_loc)[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
+        if rung is not None and rung.scale <= SPEED_LADDER[-1] and (reason := self._leaving(nlp, result.iterate)):
+            return LawResult(0.0, v_mps=0.0, predicted=result.iterate.X[1:], stop_reason=reason,
+                             uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
         return self._report(nlp, start, result, gp is not None, rung, cov, capped)
 
     @staticmethod
@@ -290,6 +297,17 @@ class RCLBNMPCLaw:
             return ""
         return (f"predicted uncertainty no longer fits the corridor ({a:g} sigma: {a * sig0[1]:.3f} m lateral, "
                 f"{math.degrees(a * sig0[2]):.1f} deg heading): stopped")
+
+    def _leaving(self, nlp: CorridorNLP, it: Iterate) -> str:
+        """Why the robot must stop at the slowest speed: the plan's first predicted step, with its lateral
+        alpha-sigma region, reaches beyond the corridor ("" if it does not). The heading is left out: at a
+        crawl the plan's own turn on the spot moves it, and the first step's spread already must fit."""
+        a, e_lat, s_lat = self.alpha, float(it.E[0, 1]), float(it.sig[0, 1])
+        lo, hi = float(nlp.lo_lat[0]), float(nlp.hi_lat[0])
+        if lo <= e_lat - a * s_lat and e_lat + a * s_lat <= hi:
+            return ""
+        return (f"at the slowest speed the plan's next lateral error {e_lat:+.3f} m +- {a * s_lat:.3f} m "
+                f"({a:g} sigma) reaches beyond the corridor [{lo:+.2f}, {hi:+.2f}] m: stopped")
 
     def _sigma_speed_jacobian(self, problem: HorizonProblem, start: Iterate, rung: Rung, cov: HorizonCovariance,
                               A: np.ndarray) -> np.ndarray:
