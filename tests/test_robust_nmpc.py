@@ -595,15 +595,16 @@ def test_at_the_slowest_rung_the_law_stops_before_the_next_steps_spread_leaves_t
     """A spread widened 6x (calibration factors of 6 on the variance) fits only the ladder's bottom rung.
     On the route and 5 cm off it, the robot drives on at that rung; 15 cm off a 0.2 m corridor, the next
     step's 3-sigma reaches beyond it and the law stops and says why. With the spread unwidened, the same
-    15 cm is steered back at a faster rung: the stop is for the slowest speed only."""
+    15 cm is steered back at a faster rung, and a drive still at 0.8 m/s slows by the plan: the stop is
+    for a robot already at the slowest speed only."""
     path = arc_path()
     corridor = Corridor(path.s, 0.2, math.radians(15))
     cov = np.diag([0.02 ** 2, 0.02 ** 2, 1e-4])
 
-    def step(offset_m, factor):
+    def step(offset_m, factor, drive_mps=0.0):
         ctx = ctx_for(path, path.pose_at(5.0) + np.array([0, offset_m, 0]), corridor=corridor, cov=cov)
         law = RCLBNMPCLaw(NMPCSettings(), DT)
-        return law.angular(dataclasses.replace(ctx, spread_factors=(factor,) * 10)), law
+        return law.angular(dataclasses.replace(ctx, spread_factors=(factor,) * 10, xi_now=(drive_mps, 0.0))), law
 
     for offset_m in (0.0, 0.05):
         out, law = step(offset_m, 6.0)
@@ -613,6 +614,8 @@ def test_at_the_slowest_rung_the_law_stops_before_the_next_steps_spread_leaves_t
     assert "reaches beyond the corridor [-0.20, +0.20] m" in out.stop_reason
     out, law = step(0.15, 1.0)
     assert law._rung < len(SPEED_LADDER) - 1 and out.v_mps > 0 and not out.stop_reason
+    out, law = step(0.15, 6.0, drive_mps=0.8)          # one descent put a fast robot there: it brakes by the plan
+    assert law._rung == len(SPEED_LADDER) - 1 and not out.stop_reason
 
 
 @pytest.mark.integration

@@ -49,6 +49,8 @@ from services.controller.speed_ladder import SPEED_LADDER, Rung, fastest_fitting
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
+SLOWEST_REACHED = 1.25   # the drive's speed at most this times the slowest rung's for the robot to be at it
+
 
 def _horizon_sigmas(sig: np.ndarray, loc: np.ndarray, raw: np.ndarray) -> dict:
     """UncertaintyReport's per-step spreads from route-frame sigmas (K, 3) as widened, their localizer's
@@ -81,6 +83,13 @@ def _capped(ctx: StepContext) -> tuple[StepContext, str]:
     note = f"held to {c:.2f} m/s: the last pass here took {cap.share:.0%} of the corridor at {cap.at_m:.0f} m" \
         if c < ctx.v_mps else ""
     return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), c)), note
+
+
+def _at_the_slowest(rung: Rung) -> bool:
+    """The ladder chose its slowest rung and the drive is already near its speed: a robot still fast was
+    put there by one descent, and braking from speed in a corner is no safer than the plan (a Grizzly
+    stopped from 1.5 m/s turned 25 deg off the route: bench seed 6607, s1583139655)."""
+    return rung.scale <= SPEED_LADDER[-1] and rung.problem.start.xi0[0] <= SLOWEST_REACHED * float(np.max(rung.v))
 
 
 def _estimate_sigmas(ctx: StepContext) -> tuple[float, float]:
@@ -220,7 +229,7 @@ class RCLBNMPCLaw:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
                                       sig_floor=np.minimum(rung.cov.least(rung.sig_loc)[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
-        if rung is not None and rung.scale <= SPEED_LADDER[-1] and (reason := self._leaving(nlp, result.iterate)):
+        if rung is not None and _at_the_slowest(rung) and (reason := self._leaving(nlp, result.iterate)):
             return LawResult(0.0, v_mps=0.0, predicted=result.iterate.X[1:], stop_reason=reason,
                              uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
         return self._report(nlp, start, result, gp is not None, rung, cov, capped)
