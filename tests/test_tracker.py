@@ -83,6 +83,15 @@ def loc(t, x=1.0, y=0.05, status="ok", capture=None):
                     cov_T_vertex_robot=(1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-6) if ok else None, matched_features=None)
 
 
+def posed(t, x, y, theta):
+    """An estimate at pose (x, y, theta) on PATH (heading 0)."""
+    v = PATH.nearest_vertex((x, y))
+    return LocState(stamp_s=t, capture_stamp_s=t, tick=round(t * 10), capture_tick=round(t * 10), trial=1,
+                    path_id="p", source="pose", status="ok", reason="", vertex=v, distance_m=x,
+                    T_vertex_robot=(x - PATH.poses[v, 0], y, theta),
+                    cov_T_vertex_robot=(1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-6), matched_features=None)
+
+
 def test_waits_for_first_estimate_then_tracks():
     tr = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=0.5)
     d = tr.step(0.0, loc(0.0, status="initializing"))
@@ -203,6 +212,35 @@ def test_a_lagging_ackermann_keeps_steering_along_the_route_until_its_drive_has_
     assert drive[first_zero] <= REST_MPS < drive[first_zero - 1]
     assert all(d.state == "stopped" and d.v_mps == 0.0 for d in decisions[first_zero:])
 
+
+def test_a_lagging_skid_steer_brakes_without_turning_off_the_route():
+    """A skid-steer's turn drive lags too (0.73 s, a Grizzly's). A stop just out of a turn finds the
+    drive still turning at the turn's rate while its speed falls: commanding the route's curvature times
+    the speed lets that rate turn the robot on. The brake brings the drive's turn rate to the route's
+    curvature at the speed the drive will have (here 0: a straight route), countering the drive's rate
+    within the robot's turn-rate limit, so the robot (here the lag model itself) turns half as far; it is
+    stopped once the model's drive neither rolls nor turns."""
+    from services.controller.actuator import ActuatorLag
+    from services.controller.tracker import REST_MPS, REST_RADPS
+    lag = ActuatorLag(0.53, 0.73, 0.1)
+    tr = PathTracker(PATH, StoppingLaw(at_s=1.05), TrackerLimits(v_max_mps=2.0, w_max_radps=1.2, decel_mps2=2.5),
+                     speed_mps=1.5, period_s=0.1, lag=lag)
+    sent = {k: (1.5, 0.6) for k in range(10)}          # the drive still turns at 0.6 rad/s
+    x, y, th, xi = 1.0, 0.0, 0.0, (1.5, 0.6)
+    states, heading = [], []
+    for k in range(10, 50):
+        d = tr.step(0.1 * k, posed(0.1 * k, x, y, th), tick=k, command_at=sent.get)
+        sent[k] = (d.v_mps, d.w_radps)
+        states.append(d.state)
+        (v, w), xi = lag.step(xi, sent[k])
+        th += w * 0.1
+        x, y = x + v * 0.1 * math.cos(th), y + v * 0.1 * math.sin(th)
+        heading.append(th)
+    assert states[0] == "tracking" and states[1] == "stopping" and states[-1] == "stopped"
+    # 7 deg, 3 of them in the period before the stop; 13 deg when the command ignores the lag
+    assert max(abs(h) for h in heading) < math.radians(8.5)
+    rest = states.index("stopped")
+    assert rest > 5 and abs(xi[0]) <= REST_MPS and abs(lag.state_before(10 + rest, sent.get)[1]) <= REST_RADPS
 
 def test_a_safety_stop_without_an_estimate_stops_at_once():
     tr = PathTracker(PATH, StoppingLaw(at_s=1.05), TrackerLimits(1.0, 1.0, decel_mps2=2.0), speed_mps=1.0)

@@ -123,6 +123,12 @@ class ActuatorLag:
         """The turn-rate command whose drive response turns the robot at w (settled; floats or arrays)."""
         return w_radps / self.turn_gain
 
+    def turn_command_reaching(self, xi_w: float, target_radps: float) -> float:
+        """The turn-rate command that brings a drive turning at xi_w to `target_radps` by the period's end
+        (the lag inverted over one period; not for a rate-limited drive, whose xi is a curvature)."""
+        beta = _coeffs(self.tau_w_s, self.dt)[0]
+        return (target_radps - beta * xi_w) / (1.0 - beta)
+
     @property
     def history_periods(self) -> int:
         """How many earlier commands `state_before` replays."""

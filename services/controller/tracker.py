@@ -29,6 +29,7 @@ from services.controller.missed_variance import FloorsBySpeed
 LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
 STOP_DECEL_MPS2 = 0.4    # the gentle deceleration into the end of the route
 REST_MPS = 0.03          # a braking robot whose drive the lag model puts below this has stopped
+REST_RADPS = 0.02        # ... and, a skid-steer, has stopped turning below this
 CREEP_MPS = 0.01         # what a braking Ackermann is commanded while it rolls: its steering needs a speed
 BRAKE_CURVATURE_PER_M = 0.5   # the most a stop steers beyond the route's own curvature
 END_OF_ROUTE = "end of route reached"
@@ -203,45 +204,50 @@ class PathTracker:
         self._last_cmd = (v, w)
         return Decision(v, w, "tracking", reason or res.note, vertex, dist, lat, head, age, res)
 
-    def _drive_speed(self, tick: int | None, command_at: Callable[[int], tuple[float, float] | None] | None) -> float:
-        """The speed the drive still has by the lag model (0 without one, or without a command history:
-        the drive then follows the command within the period)."""
+    def _drive_state(self, tick: int | None,
+                     command_at: Callable[[int], tuple[float, float] | None] | None) -> tuple[float, float] | None:
+        """The drive's state by the lag model (its speed, and its turn rate or the steering's curvature);
+        None without a lag or a command history: the drive then follows the command within the period."""
         if self.lag.active and tick is not None and command_at is not None:
-            return self.lag.state_before(tick, command_at)[0]
-        return 0.0
+            return self.lag.state_before(tick, command_at)
+        return None
 
     def _finish(self, last: LocState | None, age: float, loc: LocState | None, tick: int | None,
                 command_at: Callable[[int], tuple[float, float] | None] | None) -> Decision | None:
         """The end of the route as the same manoeuvre as a safety stop: a heavy robot's drive still rolls
         when the estimate passes the last vertex (its lag), and v = w = 0 would let it coast off turning
         as its last commands left it."""
-        return self._brake(last, age, loc, self._drive_speed(tick, command_at), "finished",
+        return self._brake(last, age, loc, self._drive_state(tick, command_at), "finished",
                            f"{END_OF_ROUTE}: braking along the route")
 
     def _halt(self, last: LocState | None, age: float, loc: LocState | None, tick: int | None,
               command_at: Callable[[int], tuple[float, float] | None] | None) -> Decision | None:
         """A law's safety stop (`halted`), braking along the route."""
-        return self._brake(last, age, loc, self._drive_speed(tick, command_at), "stopping",
+        return self._brake(last, age, loc, self._drive_state(tick, command_at), "stopping",
                            f"{self.halted}: braking along the route")
 
-    def _brake(self, last: LocState | None, age: float, loc: LocState | None, v_drive: float, state: str,
-               reason: str) -> Decision | None:
+    def _brake(self, last: LocState | None, age: float, loc: LocState | None, drive: tuple[float, float] | None,
+               state: str, reason: str) -> Decision | None:
         """A stop as a manoeuvre that keeps the robot inside: brake at the robot's limit while steering
         along the route, not v = w = 0, which drops the counter-steer and lets the robot coast off. The
-        steering holds until the drive has stopped (`v_drive`, by the lag model), not the command: a
+        steering holds until the drive has stopped (`drive`, by the lag model), not the command: a
         heavy robot's drive lags its command by a second. It steers a curvature (feedback
         linearization at the rolling speed, within BRAKE_CURVATURE_PER_M of the route's), turned into a
         turn rate at that speed: FL's turn rate grows like 1 / v and would spin a slow skid-steer in
         place. An Ackermann robot steers by the ratio w / v of its command (eq. 5.27), so while it rolls
-        it is commanded a creep with that curvature. None once at rest, or without a usable estimate
-        (then there is nothing to steer by: plain stop)."""
+        it is commanded a creep with that curvature; a skid-steer's turn drive is brought to that
+        curvature at its speed (_turn_held). None once at rest, or without a usable estimate (then there
+        is nothing to steer by: plain stop)."""
         v = max(0.0, self._last_cmd[0] - self.limits.decel_mps2 * self.period_s)
-        rolling = max(v, v_drive)
-        if rolling <= REST_MPS or last is None or age > self.loc_timeout_s or (loc is not None and loc.status == "lost"):
+        rolling = max(v, drive[0]) if drive else v
+        turning = abs(drive[1]) if drive and not self.lag.rate_limited else 0.0
+        if (rolling <= REST_MPS and turning <= REST_RADPS) or last is None or age > self.loc_timeout_s \
+                or (loc is not None and loc.status == "lost"):
             return None
         _, dist, lat, head = self.route_errors(last)
         kappa = float(np.interp(dist, self.path.s, self.path.curvature))
-        c = fl_angular_rate(rolling, lat, head, kappa, self._fallback.gains, turn_gain=self.lag.turn_gain) / rolling
+        at = max(rolling, REST_MPS)
+        c = fl_angular_rate(at, lat, head, kappa, self._fallback.gains, turn_gain=self.lag.turn_gain) / at
         kappa = self.lag.command_for(kappa)      # the curvature commanded for the robot's to be the route's
         c = max(kappa - BRAKE_CURVATURE_PER_M, min(kappa + BRAKE_CURVATURE_PER_M, c))
         c = max(-self.limits.max_curvature, min(self.limits.max_curvature, c))
@@ -249,9 +255,18 @@ class PathTracker:
             v = max(v, CREEP_MPS)
             w = c * v
         else:
-            w = max(-self.limits.w_max_radps, min(self.limits.w_max_radps, c * rolling))
+            w = c * rolling if drive is None else self._turn_held(c, v, drive)
+            w = max(-self.limits.w_max_radps, min(self.limits.w_max_radps, w))
         self._last_cmd = (v, w)
         return Decision(v, w, state, reason, last.vertex, dist, lat, head, age)
+
+    def _turn_held(self, c: float, v: float, drive: tuple[float, float]) -> float:
+        """The turn-rate command that brings a braking skid-steer's turn drive to curvature c at the speed
+        its drive will have at the period's end. A lagging turn drive keeps its last rate while the speed
+        falls: commanding c times the speed alone turned a Grizzly 15-25 deg off the route as it stopped
+        from 1.5-2 m/s in a corner (docs/results.md, stop 61)."""
+        v_next = self.lag.step(drive, (v, 0.0))[1][0]
+        return self.lag.turn_command_reaching(drive[1], c * v_next)
 
     def _run_law(self, ctx: StepContext) -> tuple[LawResult, str]:
         """The law's result, or feedback linearization for this step when the law failed numerically (a
