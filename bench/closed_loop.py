@@ -34,6 +34,11 @@ class RepeatResult:
     finished: bool
     steps: int
     observations: list[Observation]
+    xy_m: np.ndarray | None = None      # (steps, 2) the truth's positions
+
+    def rolled_m(self, since: int = 0) -> float:
+        """How far the robot moved from step `since` on."""
+        return float(np.sum(np.hypot(*np.diff(self.xy_m[since:], axis=0).T)))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """The trial's disturbance observations as A (n, 9) and G (n, 3)."""
@@ -100,7 +105,7 @@ class ClosedLoop:
                               period_s=self.period_s)
         core = ControllerCore(path, tracker, self.period_s)
         s = self.sim.sample()
-        lat, head, hint, finished, observations = [], [], 0, False, []
+        lat, head, hint, finished, observations, xy = [], [], 0, False, [], []
         for n in range(max_steps):
             d, obs = core.step(s.stamp_s, s.tick, self.source.on_truth(truth_of(s, trial), "route"))
             observations += obs
@@ -108,6 +113,7 @@ class ClosedLoop:
             hint = pr.vertex
             lat.append(pr.lateral_m)
             head.append(pr.heading_rad)
+            xy.append((s.x, s.y))
             if d.state == "finished":
                 finished = True
                 if abs(s.v_ground) < 1e-3:
@@ -115,4 +121,4 @@ class ClosedLoop:
             self.sim.command(d.v_mps, d.w_radps)
             s = self.sim.step()
         self.sim.end_trial()
-        return RepeatResult(np.array(lat), np.array(head), finished, n + 1, observations)
+        return RepeatResult(np.array(lat), np.array(head), finished, n + 1, observations, np.array(xy))

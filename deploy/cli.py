@@ -11,7 +11,7 @@ import threading
 from common.bus import DEFAULT_ENDPOINT, add_log_level_argument
 from common.config import ConfigError
 
-BENCHES = ("bus", "gp", "store", "controller", "localizer", "scenarios", "deployment", "codec")
+BENCHES = ("bus", "gp", "store", "controller", "localizer", "scenarios", "deployment", "codec", "stops")
 
 
 def _raise_interrupt(_signum, _frame):

@@ -1,0 +1,145 @@
+"""`lbc bench stops`: how far a safety stop from speed in a corner turns a robot and carries it off its route.
+
+A stop is a manoeuvre (tracker._brake): it brakes at the robot's limit while steering along the route
+until the drive, by its identified lag, neither rolls nor turns. This bench measures that manoeuvre on
+every preset, in the closed-loop simulator (bench/closed_loop.py: the services' pure cores without the
+bus). Each route is a 15 m straight into a 110 deg arc of radius R, taught at half the preset's top
+speed (0.8 m/s at most); the controller's drive model is identified from that teach pass, as the node
+does. FL tracks at a share of the preset's top speed, and at a share of the arc the law asks for a
+safety stop. From the stop until the robot is at rest (or 25 s): the largest change of the heading
+error (deg), how much the lateral error grows beyond its value at the stop (m, 0 if it only shrinks),
+and the distance rolled (m). The grid is --speeds x --radii x --at. Deterministic; prints, per preset,
+the stops and the medians and maxima, and over all presets the largest turn, on its last line.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.closed_loop import ClosedLoop
+from bench.report import run_and_print
+from common.robot import PRESETS
+from services.controller.actuator import ActuatorLag
+from services.controller.fl import FLGains
+from services.controller.laws import FLLaw, LawResult
+
+log = logging.getLogger("bench.stops")
+
+STRAIGHT_M = 15.0
+ARC_RAD = math.radians(110.0)
+SETTLE_STEPS = 250          # 25 s at 10 Hz: every preset is at rest well before
+
+
+class StopsAt:
+    """FL until `stop_m` along the route, then a safety stop; remembers the step it stopped at."""
+    name = "stops-at"
+
+    def __init__(self, stop_m: float):
+        self.stop_m, self.fl, self.steps, self.stop_step = stop_m, FLLaw(FLGains()), 0, None
+
+    def angular(self, ctx):
+        self.steps += 1
+        if ctx.s_m < self.stop_m:
+            return self.fl.angular(ctx)
+        self.stop_step = self.stop_step or self.steps
+        return LawResult(0.0, v_mps=0.0, stop_reason="bench stop")
+
+
+@dataclass(frozen=True)
+class StopOutcome:
+    preset: str
+    speed_mps: float
+    radius_m: float
+    stop_m: float
+    heading_turned_deg: float
+    lateral_growth_m: float
+    rolled_m: float
+
+
+def corner_route(radius_m: float) -> list[list[float]]:
+    arc = [[STRAIGHT_M + radius_m * math.sin(a), radius_m - radius_m * math.cos(a)]
+           for a in np.linspace(0.0, ARC_RAD, 12)[1:]]
+    return [[0.0, 0.0], [STRAIGHT_M, 0.0]] + arc
+
+
+def stops_on(preset: str, radius_m: float, speeds: list[float], at: list[float], seed: int) -> list[StopOutcome]:
+    """One teach pass of the corner route, then one repeat per (speed share, arc share)."""
+    robot = PRESETS[preset]
+    sim = ClosedLoop(corner_route(radius_m), preset=preset, seed=seed, teach_speed=min(0.8, 0.5 * robot.v_max_mps))
+    sim.teach()
+    m = sim.identified()
+    lag = ActuatorLag(m.tau_v_s, m.tau_w_s, sim.period_s, curvature_rate_max_per_ms=m.curvature_rate_max_per_ms,
+                      turn_gain=m.turn_gain)
+    out = []
+    for share in speeds:
+        for frac in at:
+            law = StopsAt(STRAIGHT_M + frac * ARC_RAD * radius_m)
+            v = share * robot.v_max_mps
+            r = sim.repeat(1, v, law=law, lag=lag, max_steps=SETTLE_STEPS + int(60 / sim.period_s))
+            k = law.stop_step
+            if k is None:
+                raise RuntimeError(f"{preset} at {v:.2f} m/s never reached its stop at {law.stop_m:.1f} m")
+            head, lat = r.heading_rad[k:], r.lateral_m[k:]
+            growth = float(np.max(np.abs(lat)) - abs(lat[0]))
+            out.append(StopOutcome(preset, v, radius_m, law.stop_m, math.degrees(float(np.max(np.abs(head - head[0])))),
+                                   max(0.0, growth), r.rolled_m(k)))
+            log.info("%s R=%.0f m v=%.2f m/s stop at %.1f m: turned %.1f deg, lateral +%.3f m, rolled %.2f m",
+                     preset, radius_m, v, law.stop_m, out[-1].heading_turned_deg, out[-1].lateral_growth_m,
+                     out[-1].rolled_m)
+    return out
+
+
+def _case(o: StopOutcome) -> dict:
+    return {"speed_mps": round(o.speed_mps, 3), "radius_m": o.radius_m, "stop_m": round(o.stop_m, 2),
+            "heading_turned_deg": round(o.heading_turned_deg, 2), "lateral_growth_m": round(o.lateral_growth_m, 4),
+            "rolled_m": round(o.rolled_m, 3)}
+
+
+def summary(outcomes: list[StopOutcome]) -> dict:
+    turned = [o.heading_turned_deg for o in outcomes]
+    return {"stops": len(outcomes),
+            "heading_turned_deg_median": round(float(np.median(turned)), 2),
+            "heading_turned_deg_max": round(float(np.max(turned)), 2),
+            "lateral_growth_m_max": round(max(o.lateral_growth_m for o in outcomes), 4),
+            "rolled_m_median": round(float(np.median([o.rolled_m for o in outcomes])), 3),
+            "worst_turn": _case(max(outcomes, key=lambda o: o.heading_turned_deg)),
+            "worst_lateral": _case(max(outcomes, key=lambda o: o.lateral_growth_m))}
+
+
+def run_bench(args) -> dict:
+    result: dict = {"presets": {}}
+    everything = []
+    for preset in args.robots:
+        outcomes = [o for radius in args.radii for o in stops_on(preset, radius, args.speeds, args.at, args.seed)]
+        result["presets"][preset] = summary(outcomes)
+        everything += outcomes
+    result["heading_turned_deg_max"] = round(max(o.heading_turned_deg for o in everything), 2)
+    result["stops"] = len(everything)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="lbc bench stops", description=__doc__.splitlines()[0])
+    parser.add_argument("--robots", nargs="+", default=sorted(PRESETS), choices=sorted(PRESETS))
+    parser.add_argument("--speeds", nargs="+", type=float, default=[0.5, 0.75, 0.95],
+                        help="shares of the preset's top speed")
+    parser.add_argument("--radii", nargs="+", type=float, default=[5.0, 8.0], help="corner radii, m")
+    parser.add_argument("--at", nargs="+", type=float, default=[0.25, 0.5, 0.75],
+                        help="where in the arc the stop comes, as shares of its length")
+    parser.add_argument("--seed", type=int, default=3)
+    args = parser.parse_args(argv)
+    if not all(0.0 < s <= 1.0 for s in args.speeds) or not all(0.0 <= a <= 1.0 for a in args.at) \
+            or not all(r > 0.0 for r in args.radii):
+        parser.error("speeds in (0, 1], --at in [0, 1], radii > 0")
+    logging.basicConfig(level=logging.INFO, format="[bench.stops] %(message)s", stream=sys.stderr)
+    log.setLevel(logging.INFO)      # progress, also under lbc's root logger at WARNING
+    return run_and_print(lambda: run_bench(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
