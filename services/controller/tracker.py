@@ -20,6 +20,7 @@ from common import se2
 from common.messages import LocState
 from common.path import Path
 from services.controller.actuator import ActuatorLag
+from services.controller.brake import balanced_offset, roll_out_m
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
@@ -231,10 +232,11 @@ class PathTracker:
         """A stop as a manoeuvre that keeps the robot inside: brake at the robot's limit while steering
         along the route, not v = w = 0, which drops the counter-steer and lets the robot coast off. The
         steering holds until the drive has stopped (`drive`, by the lag model), not the command: a
-        heavy robot's drive lags its command by a second. It steers a curvature (feedback
-        linearization at the rolling speed, within BRAKE_CURVATURE_PER_M of the route's), turned into a
-        turn rate at that speed: FL's turn rate grows like 1 / v and would spin a slow skid-steer in
-        place. An Ackermann robot steers by the ratio w / v of its command (eq. 5.27), so while it rolls
+        heavy robot's drive lags its command by a second. It steers a curvature within
+        BRAKE_CURVATURE_PER_M of the route's: with a corridor, the one that weighs its lateral and heading
+        limits over the distance still to roll (brake.py); without, feedback linearization's at the
+        rolling speed. A curvature, not a turn rate: FL's turn rate grows like 1 / v and would spin a
+        slow skid-steer in place. An Ackermann robot steers by the ratio w / v of its command (eq. 5.27), so while it rolls
         it is commanded a creep with that curvature; a skid-steer's turn drive is brought to that
         curvature at its speed (_turn_held). None once at rest, or without a usable estimate (then there
         is nothing to steer by: plain stop)."""
@@ -246,8 +248,11 @@ class PathTracker:
             return None
         _, dist, lat, head = self.route_errors(last)
         kappa = float(np.interp(dist, self.path.s, self.path.curvature))
-        at = max(rolling, REST_MPS)
-        c = fl_angular_rate(at, lat, head, kappa, self._fallback.gains, turn_gain=self.lag.turn_gain) / at
+        if self.corridor is not None:
+            c = self.lag.command_for(kappa + self._balanced(dist, lat, head, v, drive))
+        else:
+            at = max(rolling, REST_MPS)
+            c = fl_angular_rate(at, lat, head, kappa, self._fallback.gains, turn_gain=self.lag.turn_gain) / at
         kappa = self.lag.command_for(kappa)      # the curvature commanded for the robot's to be the route's
         c = max(kappa - BRAKE_CURVATURE_PER_M, min(kappa + BRAKE_CURVATURE_PER_M, c))
         c = max(-self.limits.max_curvature, min(self.limits.max_curvature, c))
@@ -259,6 +264,14 @@ class PathTracker:
             w = max(-self.limits.w_max_radps, min(self.limits.w_max_radps, w))
         self._last_cmd = (v, w)
         return Decision(v, w, state, reason, last.vertex, dist, lat, head, age)
+
+    def _balanced(self, dist: float, lat: float, head: float, v: float, drive: tuple[float, float] | None) -> float:
+        """The brake's curvature offset from the route's that weighs the corridor's lateral and heading
+        limits over the distance the robot still rolls (brake.py)."""
+        right, left, limit = (float(x) for x in self.corridor.at(dist))
+        d = roll_out_m(self.lag, drive or self.lag.settled(self._last_cmd), v, self.limits.decel_mps2,
+                       self.period_s, REST_MPS)
+        return balanced_offset(lat, head, d, right, left, limit, BRAKE_CURVATURE_PER_M)
 
     def _turn_held(self, c: float, v: float, drive: tuple[float, float]) -> float:
         """The turn-rate command that brings a braking skid-steer's turn drive to curvature c at the speed
