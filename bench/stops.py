@@ -97,10 +97,10 @@ def stops_on(preset: str, radius_m: float, speeds: list[float], at: list[float],
                 raise RuntimeError(f"{preset} at {v:.2f} m/s never reached its stop at {law.stop_m:.1f} m")
             head, lat = r.heading_rad[k:], r.lateral_m[k:]
             growth = float(np.max(np.abs(lat)) - abs(lat[0]))
-            share = (np.maximum(np.abs(lat) / corridor[0], np.abs(head) / math.radians(corridor[1]))
+            taken = (np.maximum(np.abs(lat) / corridor[0], np.abs(head) / math.radians(corridor[1]))
                      if corridor else np.full(len(lat), math.nan))
             out.append(StopOutcome(preset, v, radius_m, law.stop_m, math.degrees(float(np.max(np.abs(head - head[0])))),
-                                   max(0.0, growth), r.rolled_m(k), float(share[0]), float(np.max(share))))
+                                   max(0.0, growth), r.rolled_m(k), float(taken[0]), float(np.max(taken))))
             o = out[-1]
             log.info("%s R=%.0f m v=%.2f m/s stop at %.1f m: turned %.1f deg, lateral +%.3f m, rolled %.2f m, "
                      "corridor share %.2f -> at most %.2f", preset, radius_m, v, law.stop_m, o.heading_turned_deg,

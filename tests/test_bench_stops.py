@@ -7,10 +7,10 @@ from bench import stops
 
 
 def test_one_husky_stop_prints_the_documented_keys(capsys):
-    assert stops.main(["--robots", "husky", "--radii", "5", "--speeds", "0.5", "--at", "0.5"]) == 0
+    assert stops.main(["--robots", "husky", "--radii", "5", "--speeds", "0.5", "0.9", "--at", "0.5"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     husky = result["presets"]["husky"]
-    assert result["stops"] == husky["stops"] == 1
+    assert result["stops"] == husky["stops"] == 2
     assert set(husky) >= {"heading_turned_deg_median", "heading_turned_deg_max", "lateral_growth_m_max",
                           "rolled_m_median", "worst_turn", "worst_lateral"}
     # a Husky's drive settles within a period: from 0.5 m/s it rolls a few centimetres, turning < 2 deg
