@@ -9,11 +9,12 @@ does. FL tracks at a share of the preset's top speed, and at a share of the arc 
 safety stop. From the stop until the robot is at rest (or 25 s): the largest change of the heading
 error (deg), how much the lateral error grows beyond its value at the stop (m, 0 if it only shrinks),
 the distance rolled (m), and how much of the corridor the errors take (the larger of |lateral| over the
-half-width and |heading| over its limit: 1 on an edge) at the stop and at most afterwards. What a stop
-is for: `left_after_stop` counts stops inside the corridor at the stop and outside it afterwards. The grid is --speeds x --radii x --at. The controller has the corridor
-the services give it (`--corridor`, the scenario's default); the brake weighs its two limits
-(brake.py). Deterministic; prints, per preset, the stops and the medians and maxima, and over all
-presets the largest turn, on its last line.
+half-width and |heading| over its limit: 1 on an edge) at the stop and at most afterwards.
+`left_after_stop` counts the stops inside the corridor at the stop and outside it afterwards: what a
+stop must not do. The grid is --speeds x --radii x --at. The controller has the corridor the services
+give it (`--corridor`, the scenario's default); the brake weighs its two limits (brake.py).
+Deterministic; prints, per preset, the stops with their medians, maxima and worst cases, and over all
+presets the largest turn and the stops that left, on its last line.
 """
 from __future__ import annotations
 
@@ -29,8 +30,8 @@ from bench.closed_loop import ClosedLoop
 from bench.report import run_and_print
 from common.robot import PRESETS
 from common.scenario import ConstraintsSection
-from services.controller.corridor import Corridor
 from services.controller.actuator import ActuatorLag
+from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
 from services.controller.laws import FLLaw, LawResult
 
@@ -138,7 +139,7 @@ def run_bench(args) -> dict:
     everything = []
     for preset in args.robots:
         outcomes = [o for radius in args.radii
-                    for o in stops_on(preset, radius, args.speeds, args.at, args.seed, args.corridor or None)]
+                    for o in stops_on(preset, radius, args.speeds, args.at, args.seed, args.corridor)]
         result["presets"][preset] = summary(outcomes)
         everything += outcomes
     result["heading_turned_deg_max"] = round(max(o.heading_turned_deg for o in everything), 2)

@@ -236,10 +236,10 @@ class PathTracker:
         BRAKE_CURVATURE_PER_M of the route's: with a corridor, the one that weighs its lateral and heading
         limits over the distance still to roll (brake.py); without, feedback linearization's at the
         rolling speed. A curvature, not a turn rate: FL's turn rate grows like 1 / v and would spin a
-        slow skid-steer in place. An Ackermann robot steers by the ratio w / v of its command (eq. 5.27), so while it rolls
-        it is commanded a creep with that curvature; a skid-steer's turn drive is brought to that
-        curvature at its speed (_turn_held). None once at rest, or without a usable estimate (then there
-        is nothing to steer by: plain stop)."""
+        slow skid-steer in place. An Ackermann robot steers by the ratio w / v of its command (eq. 5.27),
+        so while it rolls it is commanded a creep with that curvature; a skid-steer's turn drive is
+        brought to that curvature at its speed (_turn_held). None once at rest, or without a usable
+        estimate (then there is nothing to steer by: plain stop)."""
         v = max(0.0, self._last_cmd[0] - self.limits.decel_mps2 * self.period_s)
         rolling = max(v, drive[0]) if drive else v
         turning = abs(drive[1]) if drive and not self.lag.rate_limited else 0.0
