@@ -56,3 +56,22 @@ def test_the_variance_gp_is_the_faded_model_itself_where_nothing_is_capped():
     model = RestFaded(gp, 0.8)
     assert model.capped((0, 5, 6), (100.0, 100.0, 100.0)) is model
     assert model.capped((0, 5, 6), (0.1, 0.1, 0.1)) is gp.capped((0, 5, 6), (0.1, 0.1, 0.1))
+
+
+def test_below_the_slowest_speed_the_part_faded_away_is_variance_and_nothing_changes_above_it():
+    """A push that acts per second (a slope) is the GP's whole mean at a crawl, one fixed to the place (a
+    rut) the faded one: the variance holds the difference, (1 - f) |g|, so that slower than the data is
+    not taken for narrower."""
+    from services.controller.uncertainty import DisturbanceVariance, PriorStd
+    A, gp = window()
+    model = RestFaded(gp, 0.8)
+    faded, plain = (DisturbanceVariance(m, PriorStd(), (0.0, 0.0, 0.0)) for m in (model, gp))
+    a = np.repeat(A[5][None], 5, axis=0)
+    a[:, 3] = (1.0, 0.8, 0.4, 0.1, 0.0)
+    raw = gp.mean(a)
+    share = np.array([0.0, 0.0, 0.5, 0.875, 1.0])[:, None]
+    np.testing.assert_allclose(model.gap(a, model.mean(a)), share * np.abs(raw), rtol=1e-9, atol=1e-15)
+    (m_f, v_f), (m_p, v_p) = faded.with_mean(a), plain.with_mean(a)
+    np.testing.assert_allclose(m_f, (1.0 - share) * m_p, atol=1e-15)
+    np.testing.assert_allclose(v_f, v_p + np.square(share * raw), rtol=1e-9, atol=1e-18)
+    assert v_f[4, 2] > v_p[4, 2] + 0.5 * raw[4, 2] ** 2 > v_p[4, 2]     # at rest: the whole push's worth

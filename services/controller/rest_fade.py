@@ -6,9 +6,12 @@ speed: below its data it holds them constant. A law that slows far below where i
 ladder of RC-LB-NMPC) then compensates, at a crawl, the whole per-period push a rut gave at speed,
 although rolling a fifth of the distance the robot feels a fifth of it: on a rutted patch an Ackermann
 steered full lock against a push that was not there and left its corridor. Pushes fixed to the place
-(ruts, rough ground) scale with the distance rolled, so linearly; a slope's push that saturates above
-walking pace is under-estimated below the slowest speed instead, which the feedback corrects and the
-variance (the prior's at speeds no experience vouches for) allows for. The speed is the rolled one,
+(ruts, rough ground) scale with the distance rolled, so linearly; a slope's slide acts per second
+instead, and the fade under-estimates it. Which of the two a window's push is, data at one speed cannot
+tell: below the slowest speed the part the fade took away, (1 - f) |g|, is the mean's own uncertainty
+(`gap`), which the variance adds. Without it a crawl onto a side slope looked safer than the speed
+already driven there, and the speed ladder chose it (a ROC6 on a 14.5 deg slope slowed from 0.54 to
+0.13 m/s and slid out sideways while its plan held the teach pass's crab). The speed is the rolled one,
 a_3 (v_{j-1}): the push follows what the robot does, not the command its drive lags behind.
 """
 from __future__ import annotations
@@ -63,6 +66,17 @@ class RestFaded:
         A = np.atleast_2d(np.asarray(A, dtype=float))
         mean, *rest = self.gp.predict(A, coverage)
         return (mean * self.factor(A[:, V_ACT])[:, None], *rest)
+
+    def gap(self, A: np.ndarray, mean: np.ndarray) -> np.ndarray:
+        """(n, 3) the part of the GP's mean the fade took away at inputs `A` (n, 9), whose faded mean is
+        `mean` (n, 3): (1 - f) |g|; zero at and above the slowest speed."""
+        A = np.atleast_2d(np.asarray(A, dtype=float))
+        f = self.factor(A[:, V_ACT])[:, None]
+        out = (1.0 - f) * np.abs(mean) / np.maximum(f, 1e-12)
+        rest = f[:, 0] <= 0.0
+        if rest.any():                      # nothing left of the mean to scale back: ask the GP
+            out[rest] = np.abs(self.gp.mean(A[rest]))
+        return out
 
     def capped(self, dims: tuple[int, ...], caps: tuple[float, ...]) -> RestFaded | GaussianProcess:
         """The GP under capped lengthscales, for its variance (uncertainty.variance_gp); itself where no

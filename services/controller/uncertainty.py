@@ -11,7 +11,9 @@ The a-priori uncertainty of the unicycle model per control period is `PriorStd` 
 and turn rate); it is the variance before any experience (trial 1, or a speed never driven there). With
 a GP, the variance is that prior scaled by the share of the GP's prior variance its (latent) posterior
 keeps, or, near the experiences (in the GP's own metric), the posterior variance itself where it is
-smaller; plus a small `process_std` floor for what never repeats. That metric's lengthscales are capped
+smaller; plus a small `process_std` floor for what never repeats. Below the slowest speed of a window
+the learned mean is faded (rest_fade.py) and the part faded away is added as variance: slower than the
+data, a plan is not known to be narrower. That metric's lengthscales are capped
 along the route, in commanded speed and in commanded turn rate (`VOUCH_DIMS`; the caps are the setting
 `NMPCSettings.vouch_lengthscales`, by default `VOUCH_SCALES`): fitted,
 they grow long in every input the data hardly vary (one trial at one speed says nothing of how the
@@ -25,6 +27,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from services.controller.rest_fade import RestFaded
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -88,7 +92,10 @@ class DisturbanceVariance:
             mean, (_, latent, near) = self.gp.mean(A), self.var_gp.predict(A, coverage=True)
         prior = std ** 2
         share = np.minimum(latent / sf2, 1.0)
-        return mean, np.minimum(share * prior, latent + (1.0 - near) * prior) + self.floor
+        var = np.minimum(share * prior, latent + (1.0 - near) * prior) + self.floor
+        if isinstance(self.gp, RestFaded):
+            var += np.square(self.gp.gap(A, mean))
+        return mean, var
 
 
 def sigma_point_step(x: np.ndarray, Sigma: np.ndarray, mu: np.ndarray, var_g: np.ndarray, v: float, w: float,
