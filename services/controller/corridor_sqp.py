@@ -101,10 +101,6 @@ class CorridorNLP:
     v_max: np.ndarray         # (K,) never above the desired speeds (nor the speed cap's)
     w_limit_at: Callable[[float], float]   # |w| bound at a speed (actuator, Ackermann steering)
     sig_floor: np.ndarray | None = None    # (K,) the least lateral sigma at any speed (the localizer's share)
-    v_lo: np.ndarray | None = None         # (K,) the slowest speeds the SQP may plan (None: v_min everywhere)
-
-    def v_lower(self) -> np.ndarray | float:
-        return self.problem.s.v_min_mps if self.v_lo is None else self.v_lo
 
     def w_limits(self, v: np.ndarray) -> np.ndarray:
         v_min = self.problem.s.v_min_mps
@@ -140,7 +136,7 @@ class CorridorNLP:
             lo_w, hi_w = np.maximum(-c_lim - c, -trust_c), np.minimum(c_lim - c, trust_c)
         else:
             lo_w, hi_w = np.maximum(-w_lim - it.w, -trust_w), np.minimum(w_lim - it.w, trust_w)
-        lo_d = np.concatenate([np.maximum(self.v_lower() - it.v, -trust_v), lo_w])
+        lo_d = np.concatenate([np.maximum(s.v_min_mps - it.v, -trust_v), lo_w])
         hi_d = np.concatenate([np.minimum(self.v_max - it.v, trust_v), hi_w])
         tight, free = self.tighten(it.sig)
         if self.sig_floor is not None:
@@ -153,7 +149,7 @@ class CorridorNLP:
         """(v, w) after the step d from `step`: a curvature-steered robot keeps the step's curvature at
         its new speed, so a plan that slows down does not turn its old turn rate into a tighter curve."""
         K = len(it.v)
-        v = np.clip(it.v + d[:K], self.v_lower(), self.v_max)
+        v = np.clip(it.v + d[:K], self.problem.s.v_min_mps, self.v_max)
         if self.problem.curvature_steered:
             return v, v * (it.w / it.v + d[K:])
         return v, it.w + d[K:]

@@ -45,7 +45,7 @@ from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
 from services.controller.missed_variance import SpreadFloors
 from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import SPEED_LADDER, Rung, fastest_fitting_rung, slowest_below
+from services.controller.speed_ladder import SPEED_LADDER, Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
@@ -220,8 +220,7 @@ class RCLBNMPCLaw:
         if rung is not None:
             nlp = dataclasses.replace(nlp, cap=reach_capped(cap, start_errors(problem), problem.effective(v)[0],
                                                             nlp.w_limits(v), dt, lo_lat, hi_lat, head_lim,
-                                                            self.alpha * sig),
-                                      v_lo=slowest_below(rung, base.v, s.v_min_mps, v_max))
+                                                            self.alpha * sig))
         start = self._start(nlp, v, w, A)
         if rung is not None and (reason := self._uncertainty_too_wide(nlp)):
             return LawResult(0.0, v_mps=0.0, predicted=start.X[1:], stop_reason=reason,

@@ -129,14 +129,3 @@ def _between(fits: Rung, miss: float, faster: tuple[float, float], base: Horizon
         return mid
     a_out[:] = a_fits
     return fits
-
-
-def slowest_below(rung: Rung, base_v: np.ndarray, v_min: float, v_max: np.ndarray) -> np.ndarray:
-    """(K,) the slowest speeds the SQP may plan under `rung`: the next rung down's (v_min under the
-    bottom one). Below that the ladder decides, having tested the spread there: an SQP that dove from a
-    rung to v_min planned a crawl nobody tested, and where a crawl is wider than the data's speeds
-    (rest_fade.gap) the next step climbed again, the speed alternating between the two every period."""
-    lower = [x for x in SPEED_LADDER if x < rung.scale - 1e-9]
-    share = lower[0] if lower else 0.0
-    return np.minimum(np.maximum(share * base_v, v_min), v_max)
-
