@@ -4,6 +4,7 @@ import numpy as np
 
 from common.gp import GaussianProcess, SEHyper
 from services.controller.rest_fade import RestFaded
+from services.controller.uncertainty import DisturbanceVariance, PriorStd
 
 
 def window(n=200, seed=3):
@@ -62,7 +63,6 @@ def test_below_the_slowest_speed_the_part_faded_away_is_variance_and_nothing_cha
     """A push that acts per second (a slope) is the GP's whole mean at a crawl, one fixed to the place (a
     rut) the faded one: the variance holds the difference, (1 - f) |g|, so that slower than the data is
     not taken for narrower."""
-    from services.controller.uncertainty import DisturbanceVariance, PriorStd
     A, gp = window()
     model = RestFaded(gp, 0.8)
     faded, plain = (DisturbanceVariance(m, PriorStd(), (0.0, 0.0, 0.0)) for m in (model, gp))

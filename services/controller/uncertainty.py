@@ -11,15 +11,15 @@ The a-priori uncertainty of the unicycle model per control period is `PriorStd` 
 and turn rate); it is the variance before any experience (trial 1, or a speed never driven there). With
 a GP, the variance is that prior scaled by the share of the GP's prior variance its (latent) posterior
 keeps, or, near the experiences (in the GP's own metric), the posterior variance itself where it is
-smaller; plus a small `process_std` floor for what never repeats. Below the slowest speed of a window
-the learned mean is faded (rest_fade.py) and the part faded away is added as variance: slower than the
-data, a plan is not known to be narrower. That metric's lengthscales are capped
+smaller; plus a small `process_std` floor for what never repeats. That metric's lengthscales are capped
 along the route, in commanded speed and in commanded turn rate (`VOUCH_DIMS`; the caps are the setting
 `NMPCSettings.vouch_lengthscales`, by default `VOUCH_SCALES`): fitted,
 they grow long in every input the data hardly vary (one trial at one speed says nothing of how the
 disturbance changes with speed), and then a handful of experiences on a straight at 0.9 m/s vouch for
 a corner at 1.8 m/s. The mean keeps the fitted lengthscales. The measurement noise sigma_n, mostly
 localization jitter between consecutive estimates, is not a disturbance of the motion and is left out.
+Below the slowest speed of a window the learned mean is faded (rest_fade.py), and the part faded away is
+added to the variance: slower than the data, a plan is not known to be narrower.
 """
 from __future__ import annotations
 
