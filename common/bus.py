@@ -30,6 +30,9 @@ log = logging.getLogger(__name__)
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 SLOW_CONNECT_WARN_S = 5.0      # a router that takes longer than this to answer is worth a warning
+# Zenoh retries a lost link after 1, 2, 4, 4 ... s, so a router restarted in 3.5 s was rejoined after 7 s;
+# retrying every second at most puts a robot's services back on the bus within 1 s of their router
+RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
 _RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+(?::\d+)?\.?")
 _JSON5_MESSAGE = re.compile(r'Json5Err\(Message \{ msg: "(.*?)", location.*\}\)', re.S)
 _zenoh_log_started = False
@@ -38,7 +41,8 @@ _zenoh_log_started = False
 def zenoh_config(mode: str, *, connect: Iterable[str] = (), listen: Iterable[str] = (),
                  connect_timeout_ms: int = -1, base: str | dict | None = None) -> zenoh.Config:
     """A session's config: `base` (a Zenoh JSON5 config file, or the same as a dict: TLS, access
-    control, limits) with the mode and endpoints set on top of it."""
+    control, limits) with the mode and endpoints set on top of it, and RECONNECT_RETRY unless `base`
+    sets its own `connect/retry`."""
     if isinstance(base, dict):
         conf = zenoh.Config.from_json5(json.dumps(base))
     elif base:
@@ -57,6 +61,8 @@ def zenoh_config(mode: str, *, connect: Iterable[str] = (), listen: Iterable[str
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
         conf.insert_json5("connect/timeout_ms", json.dumps(connect_timeout_ms))
+    if json.loads(conf.get_json("connect"))["retry"] is None:
+        conf.insert_json5("connect/retry", json.dumps(RECONNECT_RETRY))
     return conf
 
 
