@@ -68,7 +68,11 @@ reaches GUARD_SHARE at GUARD_SHARE / share times the pass's speed there; a plan 
 never below that pass's own speed (slowing down is the spread's to decide, and a slide that acts per
 second grows as the robot slows). A MATS whose trial 1 crossed rough ground at 1 m/s within 0.225 of a
 0.245 m corridor entered it at 1.2-1.5 m/s in the next trials, where its yaw, growing with speed,
-outran the steering before the model's spread said so (bench seed 4409, s1021326272).
+outran the steering before the model's spread said so (bench seed 4409, s1021326272). The share of the
+turn authority the pass's commands took there counts the same way (turn_share.py): the issue's MATS
+(docs/scenarios/issue18-mats-rc.toml) crossed rough ground in trial 1 at 1.0-1.3 m/s, its curvature at
+the steering's limit for 0.7 s, calm in the corridor (24 %); trial 2 entered at 1.5 m/s, the steering
+saturated against the yaw for 2 s and the robot left the corridor.
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
@@ -118,11 +122,12 @@ class Beyond:
 
 @dataclass(frozen=True)
 class PlaceCap:
-    """The speed the latest pass's errors near a place allow (inf: no limit), the share of the corridor
-    they took and where (route distance of the place's start)."""
+    """The speed the latest pass near a place allows (inf: no limit), the share of `what` (the corridor,
+    or the turn authority: turn_share.py) it took and where (route distance of the place's start)."""
     speed_mps: float = math.inf
     share: float = 0.0
     at_m: float = math.nan
+    what: str = "corridor"
 
 
 class SpreadCalibration:
@@ -130,11 +135,11 @@ class SpreadCalibration:
                  recent: list[deque] | None = None, places: dict[int, np.ndarray] | None = None,
                  speeds: dict[int, float] | None = None, first: dict[int, np.ndarray] | None = None,
                  brake_mps2: float = math.inf, missed: MissedVariance | None = None,
-                 shares: dict[int, float] | None = None):
+                 shares: dict[int, tuple[float, str]] | None = None):
         """`brake_mps2`: the deceleration the drive is held to (identified on the teach pass; inf: none
         seen): how far ahead a place must already be allowed for (_near). `missed`: the variance earlier
         trials' predictions missed (copied). `shares`: place bin -> the largest share of the corridor the
-        latest pass's errors took there."""
+        latest pass's errors, or of the turn authority its commands, took there, and which of the two."""
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -149,7 +154,7 @@ class SpreadCalibration:
         self.speeds_before = dict(speeds or {})      # place bin -> the fastest speed its latest pass commanded
         self.speeds_now: dict[int, float] = {}
         self.shares_before = dict(shares or {})
-        self.shares_now: dict[int, float] = {}
+        self.shares_now: dict[int, tuple[float, str]] = {}
         self.brake_mps2 = brake_mps2
         self.missed = missed.copy() if missed is not None and missed.horizon == horizon else MissedVariance(horizon)
 
@@ -202,12 +207,13 @@ class SpreadCalibration:
         kappa = _widened(self.factors_at(s_m, v_mps), np.max(first, axis=0))
         return Beyond(GROWTH * min(seen) if seen else math.inf, kappa)
 
-    def observe(self, s_m: float, share: float) -> None:
+    def observe(self, s_m: float, share: float, what: str = "corridor") -> None:
         """The estimate at route distance `s_m` took `share` of the corridor there (Corridor.share; inf:
-        beyond an edge the route lies on)."""
+        beyond an edge the route lies on), or the commands there that of the turn authority (`what`)."""
         if math.isfinite(s_m) and not math.isnan(share):
             b = math.floor(s_m / PLACE_BIN_M)
-            self.shares_now[b] = max(self.shares_now.get(b, 0.0), share)
+            if share > self.shares_now.get(b, (0.0, what))[0]:
+                self.shares_now[b] = (share, what)
 
     def speed_cap_at(self, s_m: float | None, v_mps: float = 0.0) -> PlaceCap:
         """The fastest plan the latest passes' errors over the places near (_near) allow (module
@@ -216,12 +222,12 @@ class SpreadCalibration:
             return PlaceCap()
         out = PlaceCap()
         for b in self._near(s_m, v_mps):
-            share, v = self.shares_before.get(b, 0.0), self.speeds_before.get(b, 0.0)
+            (share, what), v = self.shares_before.get(b, (0.0, "")), self.speeds_before.get(b, 0.0)
             if share <= 0.0 or v <= 0.0:
                 continue
             cap = v * max(1.0, GUARD_SHARE / share)
             if cap < out.speed_mps:
-                out = PlaceCap(cap, share, b * PLACE_BIN_M)
+                out = PlaceCap(cap, share, b * PLACE_BIN_M, what)
         return out
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:

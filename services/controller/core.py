@@ -12,6 +12,7 @@ from services.controller.calibration import Prediction, SpreadCalibration
 from services.controller.estimate_jumps import EstimateJumps
 from services.controller.experience import ExperienceBuilder, Observation
 from services.controller.tracker import Decision, PathTracker
+from services.controller.turn_share import TurnShare
 
 
 class ControllerCore:
@@ -27,6 +28,7 @@ class ControllerCore:
         self.kappa = self.calibration.factors_at(None)   # the calibration's factors of the latest step
         self.floors = self.calibration.floors_by_speed()  # ... and its floors on the model's share
         self.jumps = EstimateJumps()
+        self.turns = TurnShare(period_s, tracker.limits.w_limit)
         self._from_tick = -1                  # capture tick of the newest estimate
         self._deferred: tuple | None = None   # a candidate jump's check, until its verdict
         self._held: tuple[int, Observation | None] | None = None   # ... and its experience
@@ -52,11 +54,19 @@ class ControllerCore:
                                      (beyond.speed_mps, factors), self.floors if self.floors.any() else None, cap)
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         self.v_mps = decision.v_mps
+        self._observe_turn(decision)
         if decision.state == "stopped":
             # a robot held at rest after a safety stop shows nothing of how it moves, and how many such steps
             # a trial has depends on when the runner ends it
             observed = []
         return decision, observed
+
+    def _observe_turn(self, d: Decision) -> None:
+        """The share of the turn authority the tracking commands take here, for the place cap."""
+        if self.tracker.corridor is None or d.state != "tracking":
+            self.turns.reset()
+            return
+        self.calibration.observe(d.distance_m, self.turns.add(d.v_mps, d.w_radps), "turn authority")
 
     def _experiences(self, obs: Observation | None, capture_tick: int, candidate: bool) -> list[Observation]:
         """The experiences to send now: a candidate jump's waits for its verdict, and a jump's is dropped

@@ -80,7 +80,7 @@ def _capped(ctx: StepContext) -> tuple[StepContext, str]:
     if cap is None or not math.isfinite(cap.speed_mps):
         return ctx, ""
     c, f = cap.speed_mps, ctx.speed_at
-    note = f"held to {c:.2f} m/s: the last pass here took {cap.share:.0%} of the corridor at {cap.at_m:.0f} m" \
+    note = f"held to {c:.2f} m/s: the last pass here took {cap.share:.0%} of the {cap.what} at {cap.at_m:.0f} m" \
         if c < ctx.v_mps else ""
     return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), c)), note
 
