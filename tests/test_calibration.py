@@ -278,27 +278,32 @@ def test_a_pass_near_the_corridors_edge_holds_its_speed_there_and_a_calm_one_let
     assert nxt.continued().speed_cap_at(41.0).speed_mps == pytest.approx(1.2 * GUARD_SHARE / 0.1)
 
 
-def test_the_turn_authority_a_pass_took_caps_a_place_as_its_share_of_the_corridor_does():
-    """A pass at 1.0 m/s whose commands took 95 % of the turn authority at 40-42 m (and 10 % of the
-    corridor there): the next pass is held to 1.0 m/s there, and the cap says it was the turn authority."""
+def test_the_steering_margin_a_pass_took_caps_a_place_as_its_share_of_the_corridor_does():
+    """A pass at 1.0 m/s whose commands took 95 % of the steering margin at 40-42 m (and 10 % of the
+    corridor there): the next pass is held to 1.0 m/s there, and the cap says it was the steering margin."""
     cal = SpreadCalibration(horizon=1)
     for s in np.arange(0.0, 100.0, 0.25):
         cal.observe(float(s), 0.1)
         if 40.0 <= s < 42.0:
-            cal.observe(float(s), 0.95, "turn authority")
+            cal.observe(float(s), 0.95, "steering margin")
     drive_pass(cal, lambda s: 0.0)
     cap = cal.continued().speed_cap_at(41.0)
-    assert cap.speed_mps == pytest.approx(1.0) and cap.share == 0.95 and cap.what == "turn authority"
+    assert cap.speed_mps == pytest.approx(1.0) and cap.share == 0.95 and cap.what == "steering margin"
     assert cal.continued().speed_cap_at(70.0).what == "corridor"
 
 
-def test_the_turn_share_is_the_averaged_command_over_the_limit_at_its_speed_and_nothing_at_a_crawl():
+def test_the_turn_share_is_the_averaged_correction_over_the_margin_the_route_leaves_and_nothing_at_a_crawl():
+    """Worked by hand: an Ackermann (0.3 /m) at 1 m/s on a 0.1 /m curve has 0.2 rad/s of margin; commands
+    0.25, 0.28, 0.31 (mean 0.28) correct by 0.18 of it: 0.9. One step back to -0.05 leaves a mean of 0.18:
+    0.08 / 0.2. A skid-steer (1.2 rad/s) on a straight at 0.6 rad/s: 0.5. A route tighter than the
+    limit: all of it. A crawl: nothing."""
     from services.controller.turn_share import TurnShare
-    ackermann = TurnShare(0.1, lambda v: min(1.0, abs(v) * 0.3))       # 0.3 /m of curvature
-    shares = [ackermann.add(1.0, w) for w in (0.27, 0.30, 0.33)]
-    assert math.isnan(shares[0]) and math.isnan(shares[1]) and shares[2] == pytest.approx(1.0)
-    assert ackermann.add(1.0, -0.33) == pytest.approx((0.30 + 0.33 - 0.33) / 3 / 0.3)   # one step back: a third
+    ackermann = TurnShare(0.1, lambda v: min(1.0, abs(v) * 0.3))
+    shares = [ackermann.add(1.0, w, 0.1) for w in (0.25, 0.28, 0.31)]
+    assert math.isnan(shares[0]) and math.isnan(shares[1]) and shares[2] == pytest.approx(0.9)
+    assert ackermann.add(1.0, -0.05, 0.1) == pytest.approx(0.08 / 0.2)
     skid = TurnShare(0.1, lambda v: 1.2)
     assert [skid.add(1.5, 0.6) for _ in range(3)][-1] == pytest.approx(0.5)
+    assert [skid.add(1.5, 1.1, 1.25) for _ in range(3)][-1] == 1.0
     crawl = TurnShare(0.1, lambda v: abs(v) * 0.3)
     assert all(math.isnan(crawl.add(0.05, 0.02)) for _ in range(5))

@@ -69,7 +69,8 @@ never below that pass's own speed (slowing down is the spread's to decide, and a
 second grows as the robot slows). A MATS whose trial 1 crossed rough ground at 1 m/s within 0.225 of a
 0.245 m corridor entered it at 1.2-1.5 m/s in the next trials, where its yaw, growing with speed,
 outran the steering before the model's spread said so (bench seed 4409, s1021326272). The share of the
-turn authority the pass's commands took there counts the same way (turn_share.py): the issue's MATS
+steering margin (the turn left beyond the route's own) the pass's commands took there counts the same way
+(turn_share.py): the issue's MATS
 (docs/scenarios/issue18-mats-rc.toml) crossed rough ground in trial 1 at 1.0-1.3 m/s, its curvature at
 the steering's limit for 0.7 s, calm in the corridor (24 %); trial 2 entered at 1.5 m/s, the steering
 saturated against the yaw for 2 s and the robot left the corridor.
@@ -123,7 +124,7 @@ class Beyond:
 @dataclass(frozen=True)
 class PlaceCap:
     """The speed the latest pass near a place allows (inf: no limit), the share of `what` (the corridor,
-    or the turn authority: turn_share.py) it took and where (route distance of the place's start)."""
+    or the steering margin: turn_share.py) it took and where (route distance of the place's start)."""
     speed_mps: float = math.inf
     share: float = 0.0
     at_m: float = math.nan
@@ -139,7 +140,7 @@ class SpreadCalibration:
         """`brake_mps2`: the deceleration the drive is held to (identified on the teach pass; inf: none
         seen): how far ahead a place must already be allowed for (_near). `missed`: the variance earlier
         trials' predictions missed (copied). `shares`: place bin -> the largest share of the corridor the
-        latest pass's errors, or of the turn authority its commands, took there, and which of the two."""
+        latest pass's errors, or of the steering margin its commands, took there, and which of the two."""
         start = np.ones(horizon) if scales is None else np.asarray(scales, dtype=float)[:horizon]
         self.floor = np.maximum(np.pad(start, (0, horizon - len(start)), constant_values=1.0), 1.0)
         self.recent = [deque(r, maxlen=WINDOW) for r in recent] if recent is not None else \
@@ -209,7 +210,7 @@ class SpreadCalibration:
 
     def observe(self, s_m: float, share: float, what: str = "corridor") -> None:
         """The estimate at route distance `s_m` took `share` of the corridor there (Corridor.share; inf:
-        beyond an edge the route lies on), or the commands there that of the turn authority (`what`)."""
+        beyond an edge the route lies on), or the commands there that of the steering margin (`what`)."""
         if math.isfinite(s_m) and not math.isnan(share):
             b = math.floor(s_m / PLACE_BIN_M)
             if share > self.shares_now.get(b, (0.0, what))[0]:

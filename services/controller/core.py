@@ -62,11 +62,13 @@ class ControllerCore:
         return decision, observed
 
     def _observe_turn(self, d: Decision) -> None:
-        """The share of the turn authority the tracking commands take here, for the place cap."""
+        """The share of the steering margin the tracking commands take here, for the place cap."""
         if self.tracker.corridor is None or d.state != "tracking":
             self.turns.reset()
             return
-        self.calibration.observe(d.distance_m, self.turns.add(d.v_mps, d.w_radps), "turn authority")
+        kappa = float(np.interp(d.distance_m, self.path.s, self.path.curvature))
+        w_route = kappa * d.v_mps / self.tracker.lag.turn_gain
+        self.calibration.observe(d.distance_m, self.turns.add(d.v_mps, d.w_radps, w_route), "steering margin")
 
     def _experiences(self, obs: Observation | None, capture_tick: int, candidate: bool) -> list[Observation]:
         """The experiences to send now: a candidate jump's waits for its verdict, and a jump's is dropped
