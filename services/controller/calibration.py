@@ -70,10 +70,9 @@ second grows as the robot slows). A MATS whose trial 1 crossed rough ground at 1
 0.245 m corridor entered it at 1.2-1.5 m/s in the next trials, where its yaw, growing with speed,
 outran the steering before the model's spread said so (bench seed 4409, s1021326272). The share of the
 steering margin (the turn left beyond the route's own) the pass's commands took there counts the same way
-(turn_share.py): the issue's MATS
-(docs/scenarios/issue18-mats-rc.toml) crossed rough ground in trial 1 at 1.0-1.3 m/s, its curvature at
-the steering's limit for 0.7 s, calm in the corridor (24 %); trial 2 entered at 1.5 m/s, the steering
-saturated against the yaw for 2 s and the robot left the corridor.
+(turn_share.py): the issue's MATS (docs/scenarios/issue18-mats-rc.toml) crossed rough ground in trial 1
+at 1.0-1.3 m/s, its curvature at the steering's limit for 1.1 s, calm in the corridor (24 %); trial 2
+entered at 1.5 m/s, the steering saturated against the yaw for 1.5 s and the robot left the corridor.
 Pure: inputs in, factors out.
 """
 from __future__ import annotations
