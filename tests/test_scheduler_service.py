@@ -62,6 +62,12 @@ class Rig:
         self.node.subscribe(keys.sched_schedule(ROUTE), SpeedSchedule, self._on_schedule)
         self.alive = False
         self.node.liveliness_subscriber(keys.alive(keys.STORE_ROBOT, "scheduler"), self._on_alive)
+        # the scheduler asks the localizer for the route: on a busy machine the localizer can come up
+        # after the scheduler has already been asked for its first schedule
+        self.localizer_up = threading.Event()
+        self.node.liveliness_subscriber(keys.alive("r1", "localizer"),
+                                        lambda _key, alive: alive and self.localizer_up.set())
+        assert self.localizer_up.wait(60), "the localizer did not come up"
         self.start_scheduler()
 
     def _on_alive(self, _key: str, alive: bool) -> None:
