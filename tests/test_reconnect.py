@@ -6,8 +6,8 @@ import time
 import pytest
 
 from common import keys
-from tests.conftest import wait_until
 from deploy.experiment import FLEET_SERVICES, services_of
+from tests.conftest import wait_until
 
 pytestmark = pytest.mark.integration
 
