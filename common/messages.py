@@ -217,7 +217,7 @@ class ControllerStatus(Message):
 class NominalModel(Message):
     """The controller's nominal model of one robot, identified from a teach pass (drive lags against
     the wheel odometry, the a-priori uncertainty from the model's residuals on that pass)."""
-    SCHEMA_VERSION = 4    # v2: curvature_rate_max_per_ms; v3: turn_gain; v4: place_bin_m, place_spread_factors, place_speed_mps
+    SCHEMA_VERSION = 5    # v2: curvature_rate_max_per_ms; v3: turn_gain; v4: place_bin_m, place_spread_factors, place_speed_mps; v5: place_turn_share
     MAX_BYTES = 1024 * 1024   # a row of place factors per 2 m: a 1 km route's take ~140 kB
     stamp_s: float
     robot: str
@@ -248,6 +248,7 @@ class NominalModel(Message):
     place_bin_m: float                # ... and per place_bin_m of the route from its start, per horizon step, the
     place_spread_factors: list[list[float]]   # factors the teach pass needed there (its memory of places)
     place_speed_mps: list[float]              # ... and the fastest it commanded there
+    place_turn_share: list[float]             # ... and the largest share of its steering margin it took there
     residual_samples: int
     notes: list[str]                  # what could not be identified, and what was kept instead
 
@@ -263,9 +264,11 @@ class NominalModel(Message):
             raise ValueError("turn_gain must be > 0")
         if not self.place_bin_m > 0 or any(len(r) != len(self.spread_factors) or min(r, default=1.0) < 1.0
                                            for r in self.place_spread_factors) \
-                or len(self.place_speed_mps) != len(self.place_spread_factors) or min(self.place_speed_mps, default=0) < 0:
-            raise ValueError("place_bin_m > 0, place spread factors >= 1 (as many per place as spread_factors) and "
-                             "a speed >= 0 for each place")
+                or len(self.place_speed_mps) != len(self.place_spread_factors) or min(self.place_speed_mps, default=0) < 0 \
+                or len(self.place_turn_share) != len(self.place_speed_mps) \
+                or not all(0.0 <= x <= 1.0 for x in self.place_turn_share):
+            raise ValueError("place_bin_m > 0, place spread factors >= 1 (as many per place as spread_factors), "
+                             "a speed >= 0 and a steering margin share in [0, 1] for each place")
 
 
 @dataclass(frozen=True, kw_only=True)

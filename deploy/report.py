@@ -317,6 +317,9 @@ def _model_section(model: dict, teach_learning: dict | None) -> list[str]:
             "scale of the default prior, from the teach residuals": model["prior_scale"],
             "places where the teach pass needed a wider spread than its prior at 1 s ahead (route m: factor)":
                 _teach_places(model),
+            "places where the teach pass's commands took 80 % or more of the steering margin beyond the "
+            "route's turn (route m: largest share; RC-LB-NMPC holds trial 1 to the teach speed there)":
+                _stretches(model.get("place_turn_share") or [], model.get("place_bin_m", 2.0), 0.799, "{:.0%}"),
             "experiences from the teach pass, stored before trial 1 (GP fit version)":
                 (teach_learning["experiences_stored"], teach_learning["hyper_version"]) if teach_learning else "none"}
     rows.update({f"note {i + 1}": n for i, n in enumerate(model.get("notes") or [])})
@@ -332,16 +335,20 @@ def _teach_places(model: dict, step: int = 10) -> str:
     """The stretches of route whose teach residuals needed a factor above 1 on the prior's spread `step`
     periods ahead (identification.place_factors), each with its largest factor."""
     rows, bin_m = model.get("place_spread_factors") or [], model.get("place_bin_m", 2.0)
-    f = [r[min(step, len(r)) - 1] if r else 1.0 for r in rows]
+    return _stretches([r[min(step, len(r)) - 1] if r else 1.0 for r in rows], bin_m, 1.0, "{:.2f}")
+
+
+def _stretches(values: list[float], bin_m: float, above: float, fmt: str) -> str:
+    """The runs of places (`bin_m` each) whose value is above `above`, as 'from-to: largest'."""
     out, b = [], 0
-    while b < len(f):
-        if f[b] <= 1.0:
+    while b < len(values):
+        if values[b] <= above:
             b += 1
             continue
         e = b
-        while e + 1 < len(f) and f[e + 1] > 1.0:
+        while e + 1 < len(values) and values[e + 1] > above:
             e += 1
-        out.append(f"{b * bin_m:.0f}-{(e + 1) * bin_m:.0f}: {max(f[b:e + 1]):.2f}")
+        out.append(f"{b * bin_m:.0f}-{(e + 1) * bin_m:.0f}: {fmt.format(max(values[b:e + 1]))}")
         b = e + 1
     return ", ".join(out) or "none"
 

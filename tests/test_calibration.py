@@ -307,3 +307,23 @@ def test_the_turn_share_is_the_averaged_correction_over_the_margin_the_route_lea
     assert [skid.add(1.5, 1.1, 1.25) for _ in range(3)][-1] == 1.0
     crawl = TurnShare(0.1, lambda v: abs(v) * 0.3)
     assert all(math.isnan(crawl.add(0.05, 0.02)) for _ in range(5))
+
+
+def test_the_teach_passs_steering_margin_caps_trial_1_where_it_took_most_of_it():
+    """The teach pass (1 m rows, identification.place_turn_shares) took 95 % of its steering margin at
+    40-41 m at 0.8 m/s and 40 % at 60-61 m at 0.9 m/s: trial 1 is held to 0.8 m/s at the first place and
+    to 0.9 * 0.8 / 0.4 = 1.8 m/s at the second, and says it was the teach pass's margin; once trial 1
+    has passed a place, its own shares replace the teach pass's there."""
+    from services.controller.calibration import TEACH_STEERING, teach_shares, teach_speeds
+    shares, speeds = [0.0] * 100, [0.8] * 100
+    shares[40], shares[60], speeds[60] = 0.95, 0.4, 0.9
+    cal = SpreadCalibration(horizon=1, speeds=teach_speeds(1.0, speeds), shares=teach_shares(1.0, shares))
+    first = cal.speed_cap_at(41.0)
+    assert first.speed_mps == pytest.approx(0.8) and first.share == 0.95 and first.what == TEACH_STEERING
+    assert first.at_m == 40.0
+    assert cal.speed_cap_at(61.0).speed_mps == pytest.approx(1.8)
+    assert cal.speed_cap_at(80.0).speed_mps == math.inf
+    for s in np.arange(0.0, 100.0, 0.25):
+        cal.observe(float(s), 0.1)
+    drive_pass(cal, lambda s: 0.0)
+    assert cal.continued().speed_cap_at(41.0).what == "corridor"

@@ -10,6 +10,7 @@ import pytest
 from bench.closed_loop import ClosedLoop, truth_of
 from common.bins import BinPolicy
 from common.gp import GaussianProcess, SEHyper
+from common.path import Path
 from common.robot import RobotParams, robot_from_preset
 from common.scenario import TerrainPatch
 from services.bridge.teach_driver import PurePursuitDriver
@@ -383,8 +384,34 @@ def test_the_controller_identifies_its_model_on_the_teach_pass_and_learns_under_
     assert model["tau_v_s"] == pytest.approx(0.25, rel=0.3) and model["tau_w_s"] == pytest.approx(0.25, rel=0.2)
     assert model["turn_gain"] == pytest.approx(0.75, rel=0.08) and model["turn_gain_std"] > 0.0
     assert model["model_tag"] == ActuatorLag(*model["actuator_tau_s"], DT, turn_gain=model["turn_gain"]).model_tag
+    # the running controller measured the teach pass's share of its steering margin by place
+    shares = model["place_turn_share"]
+    assert len(shares) == len(model["place_speed_mps"]) > 0 and 0.0 < max(shares) <= 1.0
     tags = set()
     with open(out / "run.mcap", "rb") as fh:
         for _s, _c, message in make_reader(fh).iter_messages(topics=[keys.experience("r1")]):
             tags |= {e.model for e in decode(ExperienceBatch, message.data).experiences}
     assert tags == {model["model_tag"]}
+
+
+def test_the_teach_passs_share_of_its_steering_margin_is_kept_by_place():
+    """A teach pass at 1 m/s, 10 m straight then 10 m of a 5 m arc, by a robot whose turn gain is 0.8
+    and whose turn limit is 1.2 rad/s. Its driver commands the route's own turn (kappa v / 0.8) all
+    along but at 4-6 m, where it counter-steers 0.3 rad/s (a slope's yaw), and at 14-16 m on the arc,
+    0.5 rad/s beyond the route's 0.25. Worked by hand: 0.3 / 1.2 = 0.25 in the place of 4-6 m, and
+    0.5 / (1.2 - 0.25) in that of 14-16 m; the 0.3 s average carries 2/3 of each into the next place;
+    the route's own turn takes none."""
+    from services.controller.identification import place_turn_shares
+    arc = np.linspace(0.0, 2.0, 201)
+    poses = np.vstack([np.column_stack([np.linspace(0, 10, 201)[:-1], np.zeros(200), np.zeros(200)]),
+                       np.column_stack([10 + 5 * np.sin(arc), 5 - 5 * np.cos(arc), arc])])
+    path = Path("bend", poses)
+    along = 0.1 * np.arange(200)
+    w = np.interp(along, path.s, path.curvature) / 0.8
+    w[(along >= 4.0) & (along < 6.0)] += 0.3
+    w[(along >= 14.0) & (along < 16.0)] += 0.5
+    res = dataclasses.replace(residuals(np.zeros((200, 3)), np.column_stack([np.ones(200), w])), along_m=along)
+    shares = place_turn_shares(res, path, lambda v: 1.2, 0.8, DT, 10)
+    on_arc = 0.5 / (1.2 - np.interp(15.0, path.s, path.curvature) / 0.8)
+    assert np.interp(15.0, path.s, path.curvature) == pytest.approx(0.2, abs=0.005)
+    np.testing.assert_allclose(shares, [0, 0, 0.25, 0.25 * 2 / 3, 0, 0, 0, on_arc, on_arc * 2 / 3, 0], atol=1e-9)

@@ -81,7 +81,8 @@ MODEL = {"model_tag": "unicycle-dt100ms-tauv370ms-tauw393ms", "tau_v_s": 0.37, "
          "dead_time_v_s": 0.0, "dead_time_w_s": 0.0, "gain_v": 0.999, "gain_w": 1.0, "rate_limit_v_mps2": 0.82,
          "rate_limit_w_radps2": None, "actuator_tau_s": [0.37, 0.393], "prior_std_base": [0.002, 0.0015, 0.002],
          "prior_std_per_mps": [0.007, 0.006, 0.005], "prior_std_per_radps": [0.003, 0.003, 0.009],
-         "prior_scale": [1.64, 0.74, 0.6], "spread_factors": [1.0, 1.2], "notes": ["w: <no> rate limit seen"]}
+         "prior_scale": [1.64, 0.74, 0.6], "spread_factors": [1.0, 1.2], "notes": ["w: <no> rate limit seen"],
+         "place_bin_m": 2.0, "place_turn_share": [0.1, 0.85, 1.0, 0.5, 0.9]}
 
 
 def render(tmp_path, series, entries, dist=None, model=None):
@@ -107,6 +108,7 @@ def test_report_contents(tmp_path):
     model = page[page.index("<h2>Nominal model</h2>"):page.index("<h2>Trials</h2>")]
     assert "unicycle-dt100ms-tauv370ms-tauw393ms" in model and "0.37, 0, 0.999, 0.82" in model
     assert "0.393, 0, 1, n/a" in model and "&lt;no&gt; rate limit" in model
+    assert "<td>2-6: 100%, 8-10: 90%</td>" in model     # the teach pass's steering margin, 80 % or more
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     assert "demo_slope" in page and "lb-nmpc" in page and "husky" in page
     images = re.findall(r"data:image/png;base64,([A-Za-z0-9+/=]+)", page)

@@ -92,6 +92,7 @@ MAX_SCALE = 400.0        # 20x the modelled standard deviation
 PLACE_BIN_M = 2.0        # route distance per place whose needs are remembered across trials
 GROWTH = 1.25            # a place's latest pass vouches for plans up to this times its speed there
 GUARD_SHARE = 0.8        # of the corridor, that a place's errors grown in proportion to speed may reach
+TEACH_STEERING = "steering margin (teach pass)"
 
 
 @dataclass(frozen=True)
@@ -308,6 +309,17 @@ def teach_speeds(bin_m: float, speeds: list[float]) -> dict[int, float]:
     for b, v in enumerate(speeds):
         key = math.floor((b + 0.5) * bin_m / PLACE_BIN_M)
         out[key] = max(out.get(key, 0.0), float(v))
+    return out
+
+
+def teach_shares(bin_m: float, shares: list[float]) -> dict[int, tuple[float, str]]:
+    """The teach pass's largest share of the steering margin per PLACE_BIN_M (identification.place_turn_shares)
+    as the place cap's memory for trial 1; the places where it took none left out."""
+    out: dict[int, tuple[float, str]] = {}
+    for b, x in enumerate(shares):
+        key = math.floor((b + 0.5) * bin_m / PLACE_BIN_M)
+        if x > 0.0 and x > out.get(key, (0.0, ""))[0]:
+            out[key] = (float(x), TEACH_STEERING)
     return out
 
 

@@ -66,7 +66,7 @@ fits (docs/results.md, stop 39).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -77,6 +77,7 @@ from common.path import Path
 from services.controller.actuator import MIN_TURN_GAIN, ActuatorLag
 from services.controller.calibration import PLACE_BIN_M
 from services.controller.experience import ExperienceBuilder, Observation
+from services.controller.turn_share import TurnShare
 from services.controller.uncertainty import PriorStd
 
 MAX_DEAD_PERIODS = 5
@@ -515,11 +516,33 @@ def place_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZON
     return out, speed
 
 
+def place_turn_shares(res: TeachResiduals, path: Path, w_limit: Callable[[float], float], turn_gain: float,
+                      dt: float, bins: int) -> np.ndarray:
+    """(bins,) per PLACE_BIN_M of the route, the largest share of the steering margin the teach driver's
+    commands took there (turn_share.py, the route's own turn at the pass's speed left out). The teach
+    pass is trial 1's only pass over a place: a patch whose yaw took the teach driver's whole margin at
+    0.8 m/s is not entered at twice that by a trial that has seen it only through the prior's spread."""
+    out = np.zeros(bins)
+    if res.along_m is None or not len(res):
+        return out
+    share = TurnShare(dt, w_limit)
+    kappa = np.interp(res.along_m, path.s, path.curvature)
+    for (v, w), k, s in zip(res.u.tolist(), kappa.tolist(), res.along_m.tolist()):
+        x = share.add(v, w, k * v / turn_gain)
+        b = min(max(math.floor(s / PLACE_BIN_M), 0), bins - 1)
+        if not math.isnan(x) and x > out[b]:
+            out[b] = x
+    return out
+
+
 def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: PriorStd = PriorStd(),
-             curvature_rate_max_per_ms: float = 0.0) -> NominalModel:
+             curvature_rate_max_per_ms: float = 0.0,
+             w_limit: Callable[[float], float] | None = None) -> NominalModel:
     """The nominal model of the robot that drove this teach pass, as the controller will use it. An
     Ackermann robot's steering-rate limit comes with it (the robot's limits, as its steering-angle limit
-    does): a teach pass driven smoothly never shows it, and it is what bounds a fast repeat's turns."""
+    does): a teach pass driven smoothly never shows it, and it is what bounds a fast repeat's turns.
+    `w_limit`: the robot's turn-rate limit at a speed, for the share of it the teach pass took (None: none
+    recorded)."""
     u, y = rec.arrays()
     drive = identify_drive(u, y, rec.dt)
     lag = drive.lag(rec.dt, curvature_rate_max_per_ms)
@@ -541,6 +564,8 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         prior, scale, factors = shape, np.ones(3), np.ones(MAX_HORIZON)
         places, place_speeds = np.ones((0, MAX_HORIZON)), np.zeros(0)
         notes.append(f"only {len(res)} teach residuals (no teach pose estimates?): the default prior is kept")
+    shares = place_turn_shares(res, path, w_limit, lag.turn_gain, rec.dt, len(place_speeds)) \
+        if w_limit is not None else np.zeros(len(place_speeds))
     fit = lambda c, attr, default: getattr(c, attr) if c is not None else default   # noqa: E731
     return NominalModel(
         stamp_s=stamp_s, robot=robot, path_id=path.path_id, dt_s=rec.dt, model_tag=lag.model_tag,
@@ -558,4 +583,5 @@ def identify(rec: TeachRecorder, path: Path, robot: str, stamp_s: float, shape: 
         spread_factors=[float(f) for f in factors], place_bin_m=PLACE_BIN_M,
         place_spread_factors=[[round(float(f), 4) for f in row] for row in places],
         place_speed_mps=[round(float(v), 4) for v in place_speeds],
+        place_turn_share=[round(float(x), 4) for x in shares],
         residual_samples=len(res), notes=notes)

@@ -24,7 +24,7 @@ from common.path import Path
 from common.service import Control, Service, service_main
 from common.outbox_journal import OutboxJournal
 from common.store_client import ExperienceOutbox, WindowCache
-from services.controller.calibration import SpreadCalibration, teach_places, teach_speeds
+from services.controller.calibration import SpreadCalibration, teach_places, teach_shares, teach_speeds
 from services.controller.config import ControllerConfig, StoreClientConfig
 from services.controller.core import ControllerCore
 from services.controller.corridor import Corridor
@@ -72,7 +72,7 @@ class ControllerService(Service):
         self.gains = cfg.fl
         # the nominal model per route, identified on its teach pass (nominal_models.py)
         self.nominal = NominalModels(r, cfg.period_s, FsPath(cfg.data_dir) / "models" if cfg.data_dir else None,
-                                     lim.curvature_rate_max_per_ms)
+                                     lim.curvature_rate_max_per_ms, self.limits.w_limit)
         self.calibrations: dict[tuple[str, str], SpreadCalibration] = {}   # (route, model) -> the last trial's
         node.subscribe_queue(keys.bridge_status(r), BridgeStatus, self.inbox)
         node.subscribe_queue(keys.odom(r), Odometry, self.inbox)
@@ -156,16 +156,21 @@ class ControllerService(Service):
         this model left it, else the teach pass's factors (identification.py), else nothing widened. The
         teach factors (overall, and by place as the memory of places) measure the teach residuals against
         the identified prior: a hand-set prior starts unwidened. The drive's acceleration limit seen on the
-        teach pass is the robot's, whichever model it drives with."""
+        teach pass is the robot's, whichever model it drives with, and so are the pass's speeds and the
+        share of the steering margin it took by place (the place cap's memory for trial 1)."""
         if (path_id, model_tag) in self.calibrations:
             return self.calibrations[(path_id, model_tag)].continued()
         model = self.nominal.of(path_id)
-        brake = (model.rate_limit_v_mps2 or math.inf) if model is not None else math.inf
-        if model is None or model.model_tag != model_tag or not self.cfg.nmpc.prior_is_identified:
-            return SpreadCalibration(horizon, brake_mps2=brake)
+        if model is None:
+            return SpreadCalibration(horizon)
+        brake = model.rate_limit_v_mps2 or math.inf
+        speeds = teach_speeds(model.place_bin_m, model.place_speed_mps)
+        shares = teach_shares(model.place_bin_m, model.place_turn_share)
+        if model.model_tag != model_tag or not self.cfg.nmpc.prior_is_identified:
+            return SpreadCalibration(horizon, brake_mps2=brake, speeds=speeds, shares=shares)
         return SpreadCalibration(horizon, np.square(model.spread_factors[:horizon]),
                                  places=teach_places(model.place_bin_m, model.place_spread_factors, horizon),
-                                 speeds=teach_speeds(model.place_bin_m, model.place_speed_mps), brake_mps2=brake)
+                                 speeds=speeds, brake_mps2=brake, shares=shares)
 
     def _use_model(self, tag: str) -> None:
         """The trial's nominal model names its experiences and selects the windows and fits learned from."""

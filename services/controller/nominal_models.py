@@ -4,6 +4,7 @@ and restarts use it."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path as FsPath
 
 from common.atomic_file import write_atomically
@@ -25,10 +26,11 @@ def save_model(directory: str | FsPath, model: NominalModel) -> FsPath:
 
 class NominalModels:
     def __init__(self, robot: str, dt: float, directory: str | FsPath | None,
-                 curvature_rate_max_per_ms: float = 0.0):
+                 curvature_rate_max_per_ms: float = 0.0, w_limit: Callable[[float], float] | None = None):
         self.robot = robot
         self.dt = dt
         self.curvature_rate_max_per_ms = curvature_rate_max_per_ms   # the robot's, for its Ackermann steering
+        self.w_limit = w_limit          # the robot's turn-rate limit at a speed, for the teach pass's share of it
         self.directory = FsPath(directory) if directory else None
         self.teach: TeachRecorder | None = None
         self._known: dict[str, NominalModel] = {}
@@ -54,7 +56,7 @@ class NominalModels:
         if self.teach is None:
             raise ValueError("no teach pass was recorded")
         model = identify(self.teach, path, self.robot, stamp_s,
-                         curvature_rate_max_per_ms=self.curvature_rate_max_per_ms)
+                         curvature_rate_max_per_ms=self.curvature_rate_max_per_ms, w_limit=self.w_limit)
         self.teach = None
         self._known[path.path_id] = model
         if self.directory is not None:
