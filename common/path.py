@@ -30,7 +30,10 @@ class Projection:
 
 class Path:
     def __init__(self, path_id: str, poses, *, loop: bool = False, spacing_m: float = DEFAULT_SPACING_M,
-                 taught_by: str = "", curvature_window_m: float = 1.0):
+                 taught_by: str = "", curvature_window_m: float = 1.0, heading_window_m: float = 0.0):
+        """`heading_window_m`: the taught heading is averaged over this much of the route into the
+        reference heading a controller follows, and the curvature taken over at least as much (0: as
+        taught). A robot that cannot steer the teach pass's wiggles back is asked for their mean."""
         self.path_id = check_name("path_id", path_id)
         poses = np.asarray(poses, dtype=float)
         if poses.ndim != 2 or poses.shape[1] != 3 or len(poses) < 2:
@@ -49,7 +52,9 @@ class Path:
         self.segment_lengths = seg
         self.s = np.concatenate([[0.0], np.cumsum(seg)])
         self.length_m = float(self.s[-1])
-        self.curvature = self._curvature(curvature_window_m)
+        self.heading_window_m = float(heading_window_m)
+        self.reference_heading = self._averaged_heading(self.heading_window_m)
+        self.curvature = self._curvature(max(curvature_window_m, self.heading_window_m))
         self._tree = cKDTree(poses[:, :2])
         self._rows = self.poses.tolist()             # the same poses as floats: project() reads a few per call
         self._s_list = self.s.tolist()
@@ -57,9 +62,9 @@ class Path:
 
     # --- construction -------------------------------------------------------------------
     @classmethod
-    def from_msg(cls, msg: RouteMsg) -> "Path":
+    def from_msg(cls, msg: RouteMsg, heading_window_m: float = 0.0) -> "Path":
         return cls(msg.path_id, np.column_stack([msg.x_m, msg.y_m, msg.theta_rad]), loop=msg.loop,
-                   spacing_m=msg.vertex_spacing_m, taught_by=msg.taught_by)
+                   spacing_m=msg.vertex_spacing_m, taught_by=msg.taught_by, heading_window_m=heading_window_m)
 
     def to_msg(self, stamp_s: float) -> RouteMsg:
         return RouteMsg(path_id=self.path_id, loop=self.loop, vertex_spacing_m=self.spacing_m,
@@ -68,6 +73,16 @@ class Path:
 
     def __len__(self) -> int:
         return len(self.poses)
+
+    def _averaged_heading(self, window_m: float) -> np.ndarray:
+        """The unwrapped taught heading per vertex averaged over `window_m` of route around it (the
+        ends held; under two vertices' spacing: as taught)."""
+        heading = np.unwrap(self.poses[:, 2])
+        half = int(round(0.5 * window_m / max(self.spacing_m, 1e-6)))
+        if half < 1:
+            return heading
+        padded = np.concatenate([np.full(half, heading[0]), heading, np.full(half, heading[-1])])
+        return np.convolve(padded, np.ones(2 * half + 1) / (2 * half + 1), "valid")
 
     def _curvature(self, window_m: float) -> np.ndarray:
         """Signed curvature (1/m) per vertex: heading change over arc length across a window."""
@@ -153,6 +168,17 @@ class Path:
         _, a = self._segments(distance_m)
         diff = self.poses[a + 1, :2] - self.poses[a, :2]
         return np.arctan2(diff[..., 1], diff[..., 0])
+
+    def heading_offset_at(self, distance_m):
+        """The reference heading minus the taught heading at arc length(s), rad (zero without a
+        heading window)."""
+        d, a = self._segments(distance_m)
+        if self.heading_window_m <= 0.0:
+            return np.zeros_like(d)
+        t = (d - self.s[a]) / self.segment_lengths[a]
+        ref = self.reference_heading[a] + t * (self.reference_heading[a + 1] - self.reference_heading[a])
+        taught = self.poses[a, 2] + t * se2.wrap(self.poses[a + 1, 2] - self.poses[a, 2])
+        return se2.wrap(ref - taught)
 
     def pose_at(self, distance_m):
         """Interpolated route pose(s) at arc length(s), clamped to the route: (3,) or (M, 3)."""

@@ -137,6 +137,9 @@ class ControllerSection:
     curvature_feedforward: bool = _FL.curvature_feedforward
     loc_timeout_s: float = LOC_TIMEOUT_S      # stop when the newest estimate is older than this
     stop_decel_mps2: float = STOP_DECEL_MPS2  # gentle deceleration into the end of the route
+    # the taught heading is averaged over this much route into the reference the controller follows
+    # (common/path.py); unset: C-/RC-LB-NMPC on a car-like robot its turning radius, else none
+    route_heading_window_m: float | None = None
     ilc: ILCGains = field(default_factory=ILCGains)
     nmpc: NMPCSettings = field(default_factory=NMPCSettings)    # its horizon is controller.horizon
 
@@ -145,6 +148,8 @@ class ControllerSection:
             raise ValueError("horizon must be >= 1")
         if self.fl_gamma1 <= 0 or self.fl_gamma2 <= 0 or self.loc_timeout_s <= 0 or self.stop_decel_mps2 <= 0:
             raise ValueError("fl_gamma1, fl_gamma2, loc_timeout_s and stop_decel_mps2 must be > 0")
+        if self.route_heading_window_m is not None and not self.route_heading_window_m >= 0:
+            raise ValueError("route_heading_window_m must be >= 0 (0: the taught heading as it is)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -159,3 +159,30 @@ def test_path_rejects_bad_input():
         Path("bad id!", np.array([[0, 0, 0], [1, 0, 0.0]]))
     with pytest.raises(ValueError):
         Path("p", np.array([[0, 0, 0], [1, np.nan, 0.0]]))
+
+
+def test_the_reference_heading_averages_wiggles_shorter_than_its_window_and_keeps_a_turn():
+    """A straight route that wiggles 3 cm either side over 3.33 m (heading +-3.2 deg, curvature +-0.11 /m)
+    averaged over one wiggle: the reference heading is the straight's. The 35 vertices averaged span
+    3.5 m and keep sin(pi 3.5 / 3.33) / (35 sin(pi 0.1 / 3.33)) = 4.8 % of the wiggle's heading; the
+    curvature over 3.4 m keeps 2 %. On a 6 m arc the average of a heading that grows
+    linearly is the heading itself: offset 0 and curvature 1/6 away from the arc's ends. Without a
+    window the offset is 0 and the curvature the taught one."""
+    lam, amp, k = 10.0 / 3.0, 0.03, 2 * math.pi * 3.0 / 10.0
+    x = np.arange(0.0, 40.0, 0.1)
+    wiggle = np.column_stack([x, amp * np.sin(k * x), np.arctan(amp * k * np.cos(k * x))])
+    taught = Path("w", wiggle, spacing_m=0.1)
+    smooth = Path("w", wiggle, spacing_m=0.1, heading_window_m=lam)
+    s = np.arange(5.0, 35.0, 0.05)
+    heading = smooth.pose_at(s)[:, 2] + smooth.heading_offset_at(s)
+    assert np.max(np.abs(heading)) == pytest.approx(0.048 * amp * k, rel=0.05)
+    inner = (smooth.s > 5.0) & (smooth.s < 35.0)
+    one_metre = math.sin(k / 2) / (k / 2)        # what the taught curvature's 1 m window keeps
+    assert np.max(np.abs(taught.curvature[inner])) == pytest.approx(one_metre * amp * k * k, rel=0.02)
+    assert np.max(np.abs(smooth.curvature[inner])) < 0.03 * amp * k * k
+    np.testing.assert_array_equal(taught.heading_offset_at(s), 0.0)
+    a = np.arange(0.0, 2.0, 0.01)
+    arc = Path("a", np.column_stack([6 * np.sin(a), 6 - 6 * np.cos(a), a]), spacing_m=0.06, heading_window_m=lam)
+    mid = np.arange(3.0, 9.0, 0.1)
+    np.testing.assert_allclose(arc.heading_offset_at(mid), 0.0, atol=1e-9)
+    np.testing.assert_allclose(arc.curvature[(arc.s > 3.0) & (arc.s < 9.0)], 1 / 6, rtol=1e-3)

@@ -904,3 +904,17 @@ def test_rc_lb_nmpc_plans_no_faster_than_the_places_cap_and_says_so():
     assert "held to 0.60 m/s: the last pass here took 90% of the corridor at 8 m" in held.note
     above = RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT).angular(dataclasses.replace(base, place_cap=PlaceCap(3.0, 0.2, 8.0)))
     assert above.v_mps == pytest.approx(free.v_mps) and above.note == free.note
+
+
+def test_rc_lb_nmpc_on_a_car_like_robot_follows_the_routes_heading_averaged_over_its_turning_radius(
+        tmp_path, scenario_file):
+    """The running controller builds its route with the window: a MATS (0.30 /m) under RC-LB-NMPC tracks
+    the taught heading averaged over 1 / 0.30 = 3.3 m and says so when it prepares a trial."""
+    import io
+    from deploy.experiment import run_experiment
+    from tests.conftest import SHORT_SCENARIO
+    data = dict(SHORT_SCENARIO, robot={"preset": "mats", "name": "r1"}, controller={"algorithm": "rc-lb-nmpc"},
+                trials={"count": 1, "speed": 0.8})
+    run_experiment(scenario_file(data), tmp_path / "out", progress_stream=io.StringIO())
+    log = (tmp_path / "out" / "logs" / "controller.log").read_text()
+    assert "prepare/repeat trial 1: ok" in log and "the route's heading averaged over 3.3 m" in log

@@ -161,3 +161,20 @@ def test_service_configs_round_trip_through_toml(tmp_path):
     bad.write_text(dump_toml(service_configs(sc, tmp_path)["controller"]) + "\nsurprise = 1\n")
     with pytest.raises(ConfigError, match="surprise"):
         load_config(type(service_configs(sc, tmp_path)["controller"]), bad)
+
+
+def test_the_route_heading_window_is_a_car_like_robots_turning_radius_unless_set():
+    """Under a corridor law a MATS (Ackermann, 0.30 /m at most) follows the taught heading averaged over
+    its turning radius, a Husky (no curvature limit) the taught heading itself; the other laws track the
+    taught heading; a scenario's own window wins, 0 included."""
+    mats = service_configs(parse_scenario(_minimal(robot={"preset": "mats"})), "/tmp/unused")["controller"]
+    assert mats.heading_window_m(True) == pytest.approx(1.0 / mats.limits.max_curvature_per_m)
+    assert 3.0 < mats.heading_window_m(True) < 4.0 and mats.heading_window_m(False) == 0.0
+    husky = service_configs(parse_scenario(_minimal()), "/tmp/unused")["controller"]
+    assert husky.heading_window_m(True) == 0.0
+    for window in (2.0, 0.0):
+        own = parse_scenario(_minimal(robot={"preset": "mats"}, controller={"route_heading_window_m": window}))
+        assert service_configs(own, "/tmp/unused")["controller"].heading_window_m(True) == window
+        assert service_configs(own, "/tmp/unused")["controller"].heading_window_m(False) == window
+    with pytest.raises(ValueError, match="route_heading_window_m"):
+        parse_scenario(_minimal(controller={"route_heading_window_m": -1.0}))

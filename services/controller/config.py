@@ -64,3 +64,21 @@ class ControllerConfig:
     store: StoreClientConfig = field(default_factory=StoreClientConfig)
     corridor: CorridorConfig = field(default_factory=CorridorConfig)
     data_dir: str = ""   # where learned feedforwards (ILC) are kept, one file per route
+    # the taught heading is averaged over this much route into the reference the controller follows
+    # (common/path.py); None: a corridor law's on a car-like robot, its turning radius; else none
+    route_heading_window_m: float | None = None
+
+    def __post_init__(self):
+        if self.route_heading_window_m is not None and not self.route_heading_window_m >= 0:
+            raise ValueError("route_heading_window_m must be >= 0 (0: the taught heading as it is)")
+
+    def heading_window_m(self, corridor_law: bool) -> float:
+        """The route heading window in use. A car-like robot turns its heading by at most a radian within
+        its turning radius: the teach pass's wiggles shorter than that (its yaw on rough ground) hold its
+        steering at the limit both ways. A corridor law (C-, RC-LB-NMPC) is asked to stay inside the
+        corridor, not on those few centimetres, so by default it follows their mean; the other laws track
+        the taught route as it is."""
+        if self.route_heading_window_m is not None:
+            return self.route_heading_window_m
+        k = self.limits.max_curvature_per_m
+        return 1.0 / k if corridor_law and k > 0 else 0.0

@@ -12,7 +12,9 @@ steering's rate limit the turn rate is v times a rate-limited curvature (nonline
 Errors (eq. 5.16): x_j against the desired state x_{d,j} of the `HorizonReference`, along and lateral
 along the route's direction there, heading against the taught heading (the same definitions the
 experiences use); the cost measures the heading against the taught heading plus `head_offset` (the
-learned crab, nmpc.crab_offsets), the corridor limits against the taught heading itself. The cost adds
+learned crab, nmpc.crab_offsets) plus `route_offset` (the route's averaged heading where the robot
+cannot steer the teach pass's wiggles: Path.heading_offset_at), the corridor limits against the taught
+heading itself. The cost adds
 R on the deviation of w from the route's own turn rate, an input-rate term and a terminal term on the
 lateral error `lookahead_m` ahead of x_K.
 
@@ -52,6 +54,7 @@ class HorizonReference:
     kappa: np.ndarray          # (K,) route curvature at s_m[:-1]
     heading_slope: np.ndarray  # (K,) d(taught heading)/ds at s_m[1:], rad/m
     head_offset: np.ndarray    # (K,) the cost's heading reference of x_1..x_K minus the taught heading
+    route_offset: np.ndarray   # (K,) ... and the route's own part of it (Path.heading_offset_at)
 
 
 def reference_at(path: Path, s_d: np.ndarray, head_offset: np.ndarray | None = None) -> HorizonReference:
@@ -62,7 +65,8 @@ def reference_at(path: Path, s_d: np.ndarray, head_offset: np.ndarray | None = N
     return HorizonReference(s_m=s_d, poses=poses, direction_rad=direction, cos_dir=np.cos(direction),
                             sin_dir=np.sin(direction),
                             kappa=np.interp(s_d[:-1], path.s, path.curvature), heading_slope=slope[1:],
-                            head_offset=np.zeros(K) if head_offset is None else np.asarray(head_offset, float))
+                            head_offset=np.zeros(K) if head_offset is None else np.asarray(head_offset, float),
+                            route_offset=path.heading_offset_at(s_d[1:]))
 
 
 @dataclass(frozen=True)
@@ -379,7 +383,7 @@ class HorizonProblem:
 
     def cost_frame(self, E: np.ndarray) -> np.ndarray:
         """Errors (K, 3) as the cost weighs them: heading against the taught heading + head_offset."""
-        off = self.ref.head_offset
+        off = self.ref.head_offset + self.ref.route_offset
         if not off.any():
             return E
         E = E.copy()

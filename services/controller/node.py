@@ -109,7 +109,8 @@ class ControllerService(Service):
 
     def _load_route(self, path_id: str) -> Path:
         msg = query_one(self.node.session, keys.route(path_id), RouteMsg, timeout_s=self.cfg.route_timeout_s)
-        return Path.from_msg(msg)
+        window = self.cfg.heading_window_m(law_entry(self.cfg.algorithm).needs_corridor)
+        return Path.from_msg(msg, heading_window_m=window)
 
     def _prepare_repeat(self, ctl: Control) -> None:
         req = ctl.request
@@ -148,8 +149,9 @@ class ControllerService(Service):
             self.cache.set_position(0, req.speed_mps)
             if snapshot is not None:
                 self.log.info("trial %d: %s", req.trial, snapshot.describe())
+        window = f", the route's heading averaged over {path.heading_window_m:.1f} m" if path.heading_window_m else ""
         return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
-                          f"with {self.cfg.algorithm}, nominal model {tracker.lag.model_tag}")
+                          f"with {self.cfg.algorithm}, nominal model {tracker.lag.model_tag}{window}")
 
     def _calibration(self, path_id: str, model_tag: str, horizon: int) -> SpreadCalibration:
         """Where the online check of the predicted spread starts: where the last trial on this route under
