@@ -172,9 +172,9 @@ class Path:
     def heading_offset_at(self, distance_m):
         """The reference heading minus the taught heading at arc length(s), rad (zero without a
         heading window)."""
-        d, a = self._segments(distance_m)
         if self.heading_window_m <= 0.0:
-            return np.zeros_like(d)
+            return np.zeros(np.shape(distance_m))
+        d, a = self._segments(distance_m)
         t = (d - self.s[a]) / self.segment_lengths[a]
         ref = self.reference_heading[a] + t * (self.reference_heading[a + 1] - self.reference_heading[a])
         taught = self.poses[a, 2] + t * se2.wrap(self.poses[a + 1, 2] - self.poses[a, 2])
