@@ -318,7 +318,7 @@ def _model_section(model: dict, teach_learning: dict | None) -> list[str]:
             "places where the teach pass needed a wider spread than its prior at 1 s ahead (route m: factor)":
                 _teach_places(model),
             "places where the teach pass's commands took 80 % or more of the steering margin beyond the "
-            "route's turn (route m: largest share; RC-LB-NMPC holds trial 1 to the teach speed there)":
+            "route's turn (route m: largest share; C-/RC-LB-NMPC hold trial 1 to the teach speed there)":
                 _stretches(model.get("place_turn_share") or [], model.get("place_bin_m", 2.0), 0.799, "{:.0%}"),
             "experiences from the teach pass, stored before trial 1 (GP fit version)":
                 (teach_learning["experiences_stored"], teach_learning["hyper_version"]) if teach_learning else "none"}
