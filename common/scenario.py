@@ -135,6 +135,7 @@ class ControllerSection:
     fl_gamma1: float = _FL.gamma1   # eq. 3.5 lateral gain (1/s^2)
     fl_gamma2: float = _FL.gamma2   # eq. 3.5 heading gain (1/s)
     curvature_feedforward: bool = _FL.curvature_feedforward
+    fl_lead: bool = _FL.lead        # FL and ILC: eq. 3.5 at the errors the drive's lag leads to (fl.py)
     loc_timeout_s: float = LOC_TIMEOUT_S      # stop when the newest estimate is older than this
     stop_decel_mps2: float = STOP_DECEL_MPS2  # gentle deceleration into the end of the route
     # the taught heading is averaged over this much route into the reference the controller follows

@@ -45,7 +45,7 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
                             max_curvature_per_m=rp.max_curvature if rp.drive == "ackermann" else 0.0,
                             curvature_rate_max_per_ms=rp.max_curvature_rate,
                             decel_max_mps2=rp.decel_max_mps2),
-        fl=FLGains(ctl.fl_gamma1, ctl.fl_gamma2, ctl.curvature_feedforward),
+        fl=FLGains(ctl.fl_gamma1, ctl.fl_gamma2, ctl.curvature_feedforward, ctl.fl_lead),
         ilc=ctl.ilc,
         nmpc=replace(ctl.nmpc, horizon=ctl.horizon),
         store=StoreClientConfig(v_bin_mps=sc.store.v_bin_mps, c_vertex=sc.store.c_vertex,

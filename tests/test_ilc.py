@@ -11,7 +11,7 @@ from bench.closed_loop import ClosedLoop
 from common.codec import VERSION_FIELD
 from common.robot import PRESETS
 from common.scenario import TerrainPatch
-from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.fl import FLGains, fl_angular_rate, led_errors
 from services.bridge.teach_driver import smooth_waypoints
 from services.controller.actuator import ActuatorLag
 from services.controller.ilc import ILCGains, ILCLaw, ILCMemory
@@ -89,10 +89,11 @@ def test_without_learning_ilc_repeats_its_first_trial():
 
 # --- the lifted update (ilc_lifted.py) -------------------------------------------------------------
 def _reference_response(v: float, spacing: float, n: int, pulse_at: int, amp: float, tau: float, delay_s: float,
-                        fl: FLGains, h: float = 0.001) -> np.ndarray:
+                        fl: FLGains, h: float = 0.001, lead_s: float = 0.0) -> np.ndarray:
     """Lateral error at every vertex of a straight route driven at v by FL on estimates delay_s old
     (a true delay, not a Pade approximation), turn rate through a first-order lag tau, with w_ff = amp
-    held over vertex interval `pulse_at`: Euler integration of the unicycle, independent of the lifted model."""
+    held over vertex interval `pulse_at`: Euler integration of the unicycle, independent of the lifted model.
+    `lead_s`: FL's lead (fl.py), at the robot's turn rate now."""
     steps = int(round(n * spacing / v / h))
     lag_n = int(round(delay_s / h))
     y = th = wa = 0.0
@@ -102,6 +103,8 @@ def _reference_response(v: float, spacing: float, n: int, pulse_at: int, amp: fl
         x = v * k * h
         ey, eth = hist[-lag_n - 1] if lag_n else (y, th)
         w_ff = amp if int(x / spacing + 1e-9) == pulse_at else 0.0
+        if lead_s:
+            ey, eth = led_errors(v, ey, eth, wa, lead_s)
         w_cmd = fl_angular_rate(v, ey, eth, 0.0, fl) + w_ff
         wa += h * (w_cmd - wa) / tau
         y += h * v * math.sin(th)
@@ -123,12 +126,15 @@ def dense(band: np.ndarray) -> np.ndarray:
     return G
 
 
-@pytest.mark.parametrize("tau,delay", [(0.1, 0.0), (0.4, 0.0), (0.4, 0.15)])
-def test_lifted_model_predicts_the_closed_loop_response_to_a_feedforward_pulse(tau, delay):
+@pytest.mark.parametrize("tau,delay,lead", [(0.1, 0.0, False), (0.4, 0.0, False), (0.4, 0.15, False),
+                                            (0.4, 0.0, True), (0.4, 0.15, True)])
+def test_lifted_model_predicts_the_closed_loop_response_to_a_feedforward_pulse(tau, delay, lead):
     fl, v, spacing, n = FLGains(), 1.2, 0.25, 80
-    GL = dense(lifted_model(np.full(n - 1, spacing), np.full(n, v), ILCPlant(fl, tau_w_s=tau, delay_s=delay)).lat)
+    lead_s = delay + tau if lead else 0.0
+    plant = ILCPlant(fl, tau_w_s=tau, delay_s=delay, lead_s=lead_s)
+    GL = dense(lifted_model(np.full(n - 1, spacing), np.full(n, v), plant).lat)
     for at in (5, 30):
-        ref = _reference_response(v, spacing, n, at, 0.02, tau, delay, fl)
+        ref = _reference_response(v, spacing, n, at, 0.02, tau, delay, fl, lead_s=lead_s)
         pred = 0.02 * GL[:, at]
         assert np.all(pred[:at + 1] == 0.0)                     # causal: nothing before the pulse acts
         scale = np.max(np.abs(ref))
@@ -334,8 +340,9 @@ def test_ilc_does_not_learn_what_a_saturated_steering_cannot_follow():
     gains, mem, out = ILCGains(), ILCMemory("route", len(path)), []
     lag = ActuatorLag(0.0, 0.29, 0.1, 0.339)
     for t in range(1, 5):
-        r = sim.repeat(t, 1.92, law=ILCLaw(FLGains(), mem), ic_vertices=gains.ic_vertices, lag=lag)
+        r = sim.repeat(t, 1.92, law=ILCLaw(FLGains(), mem, lag), ic_vertices=gains.ic_vertices, lag=lag)
         out.append(r.max_lateral)
-        up = mem.update(gains, ILCPlant(FLGains(), tau_w_s=0.29, delay_s=mem.mean_age_s), np.diff(path.s))
+        plant = ILCPlant(FLGains(), tau_w_s=0.29, delay_s=mem.mean_age_s, lead_s=mem.mean_age_s + 0.29)
+        up = mem.update(gains, plant, np.diff(path.s))
         assert up.saturated_vertices > 0
     assert max(out[1:]) < 1.6 * out[0], out

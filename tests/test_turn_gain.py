@@ -27,15 +27,15 @@ def _max_lateral(make_law, gain: float) -> float:
     cl = ClosedLoop(ROUTE, preset=_robot(), seed=3, teach_speed=0.6)
     path = cl.teach()
     lag = ActuatorLag(0.45, 0.4, 0.1, turn_gain=gain)
-    r = cl.repeat(1, 1.2, law=make_law(gain, path), lag=lag)
+    r = cl.repeat(1, 1.2, law=make_law(lag, path), lag=lag)
     assert r.finished
     return r.max_lateral
 
 
 @pytest.mark.parametrize("name, make_law", [
-    ("fl", lambda g, path: FLLaw(FLGains(), g)),
-    ("ilc", lambda g, path: ILCLaw(FLGains(), ILCMemory("route", len(path)), g)),
-    ("lb-nmpc", lambda g, path: LBNMPCLaw(NMPCSettings(actuator_tau_s=(0.45, 0.4), turn_gain=g), 0.1))])
+    ("fl", lambda lag, path: FLLaw(FLGains(), lag)),
+    ("ilc", lambda lag, path: ILCLaw(FLGains(), ILCMemory("route", len(path)), lag)),
+    ("lb-nmpc", lambda lag, path: LBNMPCLaw(NMPCSettings(actuator_tau_s=(0.45, 0.4), turn_gain=lag.turn_gain), 0.1))])
 def test_a_law_that_knows_the_turn_gain_holds_the_corners(name, make_law):
     """A Grizzly turning at half its drive's rate, 1.2 m/s, no learning yet: FL and ILC (trial 1) 0.55 ->
     0.25 m, the route's own turn rate asked of the drive over the gain; LB-NMPC 0.24 -> 0.025 m, its
@@ -57,12 +57,13 @@ def test_fl_and_ilc_ask_the_drive_for_the_routes_turn_rate_over_the_gain():
     ctx = StepContext(now_s=0.0, path=path, vertex=i, pose=path.poses[i], s_m=float(path.s[i]), e_lat_m=0.0,
                       e_head_rad=0.0, v_mps=1.0, speed_at=lambda s: 1.0, prev_cmd=(1.0, 0.0), prev_pose=None,
                       w_limit=5.0, w_limit_at=lambda v: 5.0)
-    assert FLLaw(FLGains(), 0.5).angular(ctx).w_radps == pytest.approx(2.0 * kappa)
+    half = ActuatorLag(turn_gain=0.5)
+    assert FLLaw(FLGains(), half).angular(ctx).w_radps == pytest.approx(2.0 * kappa)
     moved = StepContext(**{**ctx.__dict__, "e_lat_m": 0.2})
     fb = FLLaw(FLGains(curvature_feedforward=False)).angular(moved).w_radps
     route = route_turn_rate(1.0, 0.2, 0.0, kappa)
-    assert FLLaw(FLGains(), 0.5).angular(moved).w_radps == pytest.approx(fb + 2.0 * route)
+    assert FLLaw(FLGains(), half).angular(moved).w_radps == pytest.approx(fb + 2.0 * route)
     mem = ILCMemory("p", len(path))
     mem.w_ff[i] = 0.1
-    res = ILCLaw(FLGains(), mem, 0.5).angular(moved)
+    res = ILCLaw(FLGains(), mem, half).angular(moved)
     assert res.w_radps == pytest.approx(fb + 2.0 * route + 0.1) and res.feedforward_radps == pytest.approx(0.1)

@@ -119,6 +119,22 @@ class ActuatorLag:
     def active(self) -> bool:
         return self.tau_v_s > 0.0 or self.tau_w_s > 0.0 or self.rate_limited or self.turn_gain != 1.0
 
+    def turn_rate(self, xi: tuple[float, float]) -> float:
+        """The robot's turn rate with the drive at xi (a rate-limited steering turns at the speed
+        times the curvature it has reached)."""
+        return self.turn_gain * (xi[0] * xi[1] if self.rate_limited else xi[1])
+
+    def turn_settling_s(self, change_radps: float, v_mps: float) -> float:
+        """How long the robot's turn rate takes to change by `change_radps` once commanded, as the heading
+        it turns meanwhile over the change: the lag's time constant tau; with a rate-limited steering
+        (r = v R_kappa turn_gain), a change beyond r tau first ramps at r down to r tau, then lags:
+        |change| / 2r + r tau^2 / 2|change|."""
+        tau, d = self.tau_w_s, abs(change_radps)
+        if not self.rate_limited:
+            return tau
+        r = self.turn_gain * max(abs(v_mps), V_FLOOR_MPS) * self.curvature_rate_max_per_ms
+        return tau if d <= r * tau else 0.5 * d / r + 0.5 * r * tau * tau / d
+
     def command_for(self, w_radps):
         """The turn-rate command whose drive response turns the robot at w (settled; floats or arrays)."""
         return w_radps / self.turn_gain

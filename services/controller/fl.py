@@ -20,6 +20,19 @@ turn_gain) is asked for w_ref / k, so it turns at the route's rate. The feedback
 gains then act at k times their value, and restoring them made a 47 %-turning Grizzly with a 0.3 s drive
 lag and a 0.16 s old estimate cycle +-60 deg at 1.2 m/s (docs/results.md, stop 44): eq. 3.4's poles
 placed without the lag and the delay leave the loop too little phase margin once its gain is whole.
+
+Eq. 3.5 reads the errors as they are, as if the turn it commands came at once. It comes late: the
+estimate is already `age` old, the drive follows within its lag tau_w, and a rate-limited steering (an
+Ackermann's) needs |delta| / r more to swing back from a turn rate delta beyond the route's, r = v R_kappa.
+A MATS at 1.6 m/s takes about a second to bring its steering back from a full lock; meanwhile its
+heading turns on by 15-20 deg, which the law, seeing it only then, answers with the opposite lock: the
+saturated swing of +-35 deg and +-2 m that a single yaw kick set off (docs/results.md, stop 65). With
+`lead` (default), the law is evaluated at the errors the robot will have once that turn has played
+out (`led_errors`: the robot keeps turning at delta relative to the route for the lead time), which in
+the small is a lead compensator on the drive's lag, and in the large starts the counter-steer early
+enough for the steering's rate. delta is the turn the estimates show (laws.turn_now), so the ground's
+yaw, which the drive model does not know, counts too. `lead = false` gives eq. 3.5 as the thesis
+writes it.
 """
 from __future__ import annotations
 
@@ -32,10 +45,24 @@ class FLGains:
     gamma1: float = 1.0   # 1/s^2, lateral
     gamma2: float = 1.8   # 1/s, heading (damping ratio gamma2 / (2 sqrt(gamma1)))
     curvature_feedforward: bool = True
+    lead: bool = True     # evaluate the law at the errors the drive's lag and the estimate's age lead to
 
     def __post_init__(self):
         if not (self.gamma1 > 0 and self.gamma2 > 0):
             raise ValueError("gamma1 and gamma2 must be > 0")
+
+
+MAX_LEAD_S = 2.0          # errors further ahead than this are not extrapolated from one turn rate
+
+
+def led_errors(v: float, e_L: float, e_H: float, delta_radps: float, lead_s: float) -> tuple[float, float]:
+    """(e_L, e_H) after `lead_s` (capped at MAX_LEAD_S) of driving at v and turning at `delta_radps`
+    relative to the route: the arc's exact offset along a straight route."""
+    t = min(max(lead_s, 0.0), MAX_LEAD_S)
+    e_H1 = e_H + delta_radps * t
+    if abs(delta_radps * t) < 1e-6:
+        return e_L + v * t * math.sin(e_H), e_H1
+    return e_L + v * (math.cos(e_H) - math.cos(e_H1)) / delta_radps, e_H1
 
 
 def route_turn_rate(v: float, e_L: float, e_H: float, kappa: float) -> float:

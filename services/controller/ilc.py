@@ -26,12 +26,13 @@ import numpy as np
 from common.atomic_file import write_atomically
 from common.codec import DecodeError, Message, decode, encode
 from common.messages import check_name
-from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.actuator import ActuatorLag
+from services.controller.fl import FLGains
 from services.controller.ilc_lifted import (MIN_SPEED_MPS, ILCPlant, LiftedWeights, lifted_model, mean_speeds,
                                             norm_optimal_change)
 from services.controller.ilc_monitor import (MIN_STEP_SCALE, ILCBaseline, after_saturation, recovery_s,
                                              trial_cost)
-from services.controller.laws import LawResult, StepContext
+from services.controller.laws import LawResult, StepContext, fl_command
 
 log = logging.getLogger(__name__)
 
@@ -248,14 +249,13 @@ class ILCLaw:
     """FL feedback (eq. 3.5) plus the vertex-indexed feedforward; records errors for the update."""
     name = "ilc"
 
-    def __init__(self, fl: FLGains, memory: ILCMemory, turn_gain: float = 1.0):
+    def __init__(self, fl: FLGains, memory: ILCMemory, lag: ActuatorLag | None = None):
         self.fl = fl
         self.memory = memory
-        self.turn_gain = turn_gain      # the robot's turn rate per commanded (actuator.py; fl.py, ILCPlant)
+        self.lag = lag or ActuatorLag()     # the drive the command goes through (actuator.py; fl.py, ILCPlant)
 
     def angular(self, ctx: StepContext) -> LawResult:
-        kappa = float(ctx.path.curvature[ctx.vertex])
-        w_fb = fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.fl, turn_gain=self.turn_gain)
+        w_fb = fl_command(ctx, self.fl, self.lag)
         w_ff = float(self.memory.w_ff[ctx.vertex])
         w = w_fb + w_ff
         var = (0.0, 0.0) if ctx.pose_cov is None else (float(ctx.pose_cov[1, 1]), float(ctx.pose_cov[2, 2]))

@@ -14,7 +14,9 @@ Here B is built from a model of the closed loop the feedforward acts on, per ver
 with p2 = v sin e_H (eq. 3.4), delta the robot's turn rate less the route's, k the share of the drive's
 turn rate the robot turns at (actuator.py turn_gain; FL asks for the route's rate over it), tau_w the identified
 lag of the turn-rate drive (actuator.py), y = -gamma1 e_L - gamma2 p2 the feedback of eq. 3.5 and
-yhat = 2 z - y its value D seconds late (first-order Pade: the estimate's age). Discretized exactly over
+yhat = 2 z - y its value D seconds late (first-order Pade: the estimate's age). With FL's lead
+(fl.py, `ILCPlant.lead_s` = T) y is taken at the led errors, linearized: the estimate's part
+-gamma1 e_L - (gamma1 T + gamma2) p2 is late by D, the drive's -(gamma1 T^2 / 2 + gamma2 T) v delta is not. Discretized exactly over
 each interval (zero-order hold on w_ff,i), stacked into the lifted G (eq. 3.8) for e_L and e_H = p2 / v
 at every vertex. The change minimizes
 
@@ -43,19 +45,23 @@ class ILCPlant:
     tau_w_s: float = 0.0        # the turn-rate drive's first-order lag (identified; dead time included)
     delay_s: float = 0.0        # the estimate's age when the feedback uses it
     turn_gain: float = 1.0      # the robot's turn rate over the drive's (actuator.py): on feedback and feedforward
+    lead_s: float = 0.0         # the feedback's lead (fl.py; the estimate's age and the drive's lag with FLGains.lead)
 
 
 def _continuous(v: float, plant: ILCPlant) -> tuple[np.ndarray, np.ndarray]:
     """(A, B) of the state (e_L, p2, delta, z) at speed v, input w_ff."""
-    g1, g2 = plant.fl.gamma1, plant.fl.gamma2
+    g1, g2, T = plant.fl.gamma1, plant.fl.gamma2, plant.lead_s
     tau = max(plant.tau_w_s, MIN_TAU_S)
-    y = np.array([-g1, -g2, 0.0, 0.0])                 # y = -gamma1 e_L - gamma2 p2
+    # y = -gamma1 e_L* - gamma2 p2* at the led errors (fl.py, linearized): e_L* = e_L + T p2 + T^2 v delta / 2,
+    # p2* = p2 + T v delta; the estimate's (e_L, p2) are D old, the drive's turn delta is the current one
+    y = np.array([-g1, -(g1 * T + g2), 0.0, 0.0])
+    y_now = np.array([0.0, 0.0, -(0.5 * g1 * T * T + g2 * T) * v, 0.0])
     if plant.delay_s > 0:
         a = 2.0 / plant.delay_s
-        yhat = -y + np.array([0.0, 0.0, 0.0, 2.0])     # 2 z - y
+        yhat = -y + np.array([0.0, 0.0, 0.0, 2.0]) + y_now    # 2 z - y
         z_row = a * (y - np.array([0.0, 0.0, 0.0, 1.0]))
     else:
-        yhat, z_row = y, np.zeros(4)
+        yhat, z_row = y + y_now, np.zeros(4)
     A = np.zeros((4, 4))
     A[0, 1] = 1.0
     A[1, 2] = v

@@ -5,6 +5,8 @@ the tracker set. Every law sees the same StepContext, so FL, ILC and the NMPC fa
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -12,7 +14,8 @@ import numpy as np
 
 from common.path import Path
 from services.controller.corridor import Corridor
-from services.controller.fl import FLGains, fl_angular_rate
+from services.controller.actuator import ActuatorLag
+from services.controller.fl import FLGains, fl_angular_rate, led_errors, route_turn_rate
 from services.controller.calibration import PlaceCap
 from services.controller.missed_variance import FloorsBySpeed
 
@@ -114,14 +117,34 @@ class SteeringLaw(Protocol):
 
 
 class FLLaw:
-    """Feedback linearization, eq. 3.5 (see fl.py for the sign convention and w_ref)."""
+    """Feedback linearization, eq. 3.5 (see fl.py for the sign convention, w_ref and the lead)."""
     name = "fl"
 
-    def __init__(self, gains: FLGains, turn_gain: float = 1.0):
+    def __init__(self, gains: FLGains, lag: ActuatorLag | None = None):
         self.gains = gains
-        self.turn_gain = turn_gain      # the robot's turn rate per commanded (actuator.py; fl.py)
+        self.lag = lag or ActuatorLag()     # the drive the command goes through (actuator.py; fl.py)
 
     def angular(self, ctx: StepContext) -> LawResult:
-        kappa = float(ctx.path.curvature[ctx.vertex])
-        return LawResult(fl_angular_rate(ctx.v_mps, ctx.e_lat_m, ctx.e_head_rad, kappa, self.gains,
-                                         turn_gain=self.turn_gain))
+        return LawResult(fl_command(ctx, self.gains, self.lag))
+
+
+def fl_command(ctx: StepContext, gains: FLGains, lag: ActuatorLag) -> float:
+    """Eq. 3.5 at this step; with `gains.lead`, at the errors the robot's turn leads to over the
+    estimate's age and the drive's settling time (fl.py)."""
+    kappa = float(ctx.path.curvature[ctx.vertex])
+    e_L, e_H = ctx.e_lat_m, ctx.e_head_rad
+    if gains.lead:
+        v_now = ctx.xi_now[0]
+        delta = turn_now(ctx, lag) - route_turn_rate(v_now, e_L, e_H, kappa)
+        e_L, e_H = led_errors(v_now, e_L, e_H, delta, ctx.loc_age_s + lag.turn_settling_s(delta, v_now))
+    return fl_angular_rate(ctx.v_mps, e_L, e_H, kappa, gains, turn_gain=lag.turn_gain)
+
+
+def turn_now(ctx: StepContext, lag: ActuatorLag) -> float:
+    """The robot's turn rate now: the estimates' over the period before the capture, plus the change
+    the drive's lag model makes of it since (the ground's yaw, which the drive model does not know,
+    is in the first); the model's alone without an estimate one period earlier."""
+    if ctx.prev_pose is None:
+        return lag.turn_rate(ctx.xi_now)
+    measured = math.remainder(float(ctx.pose[2] - ctx.prev_pose[2]), 2.0 * math.pi) / lag.dt
+    return measured + lag.turn_rate(ctx.xi_now) - lag.turn_rate(ctx.xi_capture)

@@ -290,8 +290,9 @@ class ControllerService(Service):
         identified one unless set by hand) and the estimates' mean age."""
         if not self.learning:
             return "ILC learning off: feedforward unchanged"
-        plant = ILCPlant(self.gains, tau_w_s=core.tracker.lag.tau_w_s, delay_s=self.ilc.mean_age_s,
-                         turn_gain=core.tracker.lag.turn_gain)
+        lag, age = core.tracker.lag, self.ilc.mean_age_s
+        plant = ILCPlant(self.gains, tau_w_s=lag.tau_w_s, delay_s=age, turn_gain=lag.turn_gain,
+                         lead_s=age + lag.tau_w_s if self.gains.lead else 0.0)
         update = self.ilc.update(self.cfg.ilc, plant, np.diff(core.path.s))
         where = self.ilc.save(FsPath(self.cfg.data_dir) / "ilc")
         return f"ILC feedforward updated (trial {self.ilc.trials}, {update.describe()}), saved as {where.name}"

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import Callable, Literal
 
 from common.scenario import ALGORITHMS
+from services.controller.actuator import ActuatorLag
 from services.controller.fl import FLGains
 from services.controller.ilc import ILCLaw, ILCMemory
 from services.controller.laws import FLLaw, StepContext, SteeringLaw
@@ -28,9 +29,9 @@ class LawInputs:
     ilc: ILCMemory | None = None                                      # the route's learned feedforward
 
     @property
-    def turn_gain(self) -> float:
-        """The robot's turn rate per commanded, for the laws without a drive model (actuator.py)."""
-        return self.nmpc.lag(self.period_s).turn_gain
+    def lag(self) -> ActuatorLag:
+        """The drive the commands go through (actuator.py), for the laws that do not plan with it."""
+        return self.nmpc.lag(self.period_s)
 
 
 @dataclass(frozen=True)
@@ -45,8 +46,8 @@ class LawEntry:
 
 
 STEERING_LAWS: dict[str, LawEntry] = {e.name: e for e in (
-    LawEntry("fl", "3.5, eq. 3.1-3.5", lambda i: FLLaw(i.gains, i.turn_gain), ""),
-    LawEntry("ilc", "ch. 3, eq. 3.12-3.16", lambda i: ILCLaw(i.gains, i.ilc, i.turn_gain), "ilc"),
+    LawEntry("fl", "3.5, eq. 3.1-3.5", lambda i: FLLaw(i.gains, i.lag), ""),
+    LawEntry("ilc", "ch. 3, eq. 3.12-3.16", lambda i: ILCLaw(i.gains, i.ilc, i.lag), "ilc"),
     LawEntry("lb-nmpc", "ch. 5, eq. 5.2-5.16", lambda i: LBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp"),
     LawEntry("mm-lb-nmpc", "ch. 6, eq. 6.2-6.14", lambda i: MMLBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp",
              uses_variance=True),

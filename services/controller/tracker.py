@@ -92,7 +92,7 @@ class PathTracker:
         self._prev_pose: tuple[int, np.ndarray] | None = None   # (capture tick, pose) one estimate back
         self._initial_error: tuple[float, float] | None = None
         self._last_cmd = (0.0, 0.0)
-        self._fallback = FLLaw(FLGains(), lag.turn_gain)
+        self._fallback = FLLaw(FLGains(), lag)
 
     def scheduled_speed(self, distance_m: float) -> float:
         """Speed at a place on the route: the schedule's speed at the nearest vertex (thesis 5.3.1:
