@@ -99,7 +99,7 @@ class ClosedLoop:
         self.sim.reset(self.ref[0], trial)
         self.source.start_repeat(path, trial, np.random.default_rng([self.seed, 12, trial]))
         r = self.robot
-        tracker = PathTracker(path, law or FLLaw(FLGains()),
+        tracker = PathTracker(path, law or FLLaw(FLGains(), lag),
                               TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature, r.decel_max_mps2),
                               speed_mps=speed, ic_vertices=ic_vertices, corridor=corridor, lag=lag,
                               period_s=self.period_s)
