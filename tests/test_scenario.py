@@ -178,3 +178,14 @@ def test_the_route_heading_window_is_a_car_like_robots_turning_radius_unless_set
         assert service_configs(own, "/tmp/unused")["controller"].heading_window_m(False) == window
     with pytest.raises(ValueError, match="route_heading_window_m"):
         parse_scenario(_minimal(controller={"route_heading_window_m": -1.0}))
+
+
+def test_fl_leads_its_feedback_unless_the_scenario_says_fl_lead_false(tmp_path):
+    """FL and ILC take eq. 3.5 at the led errors by default (fl.py); `fl_lead = false` reaches the
+    controller service's config file and back."""
+    on = service_configs(parse_scenario(_minimal()), str(tmp_path))["controller"]
+    off = service_configs(parse_scenario(_minimal(controller={"fl_lead": False})), str(tmp_path))["controller"]
+    assert on.fl.lead and not off.fl.lead
+    path = tmp_path / "controller.toml"
+    path.write_text(dump_toml(off))
+    assert load_config(type(off), path).fl.lead is False
