@@ -16,9 +16,9 @@ turn rate the robot turns at (actuator.py turn_gain; FL asks for the route's rat
 lag of the turn-rate drive (actuator.py), y = -gamma1 e_L - gamma2 p2 the feedback of eq. 3.5 and
 yhat = 2 z - y its value D seconds late (first-order Pade: the estimate's age). With FL's lead
 (fl.py, `ILCPlant.lead_s` = T) y is taken at the led errors, linearized: the estimate's part
--gamma1 e_L - (gamma1 T + gamma2) p2 is late by D, the drive's -(gamma1 T^2 / 2 + gamma2 T) v delta is not. Discretized exactly over
-each interval (zero-order hold on w_ff,i), stacked into the lifted G (eq. 3.8) for e_L and e_H = p2 / v
-at every vertex. The change minimizes
+-gamma1 e_L - (gamma1 T + gamma2) p2 is late by D, the drive's -(gamma1 T^2 / 2 + gamma2 T) v delta is
+not. Discretized exactly over each interval (zero-order hold on w_ff,i), stacked into the lifted G
+(eq. 3.8) for e_L and e_H = p2 / v at every vertex. The change minimizes
 
     sum_i q_L (e_L,i + G_L dw)_i^2 + q_H (e_H,i + G_H dw)_i^2 + rho |dw|^2 + rho_d |D1 (w_ff + dw)|^2
 

@@ -6,7 +6,6 @@ the tracker set. Every law sees the same StepContext, so FL, ILC and the NMPC fa
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
