@@ -19,6 +19,7 @@ from services.controller.fl import FLGains
 from services.controller.identification import TeachRecorder, identify
 from services.controller.laws import FLLaw, SteeringLaw
 from services.controller.tracker import PathTracker, TrackerLimits
+from services.controller.turn_speed import TURN_SHARE, TurnLoss
 from services.localizer.pose_source import PoseSource, PoseSourceSettings
 
 
@@ -93,8 +94,11 @@ class ClosedLoop:
                         curvature_rate_max_per_ms=self.robot.max_curvature_rate)
 
     def repeat(self, trial: int, speed: float, law: SteeringLaw | None = None, max_steps: int = 20000,
-               ic_vertices: int = 0, corridor=None, lag: ActuatorLag = ActuatorLag()) -> RepeatResult:
-        """One repeat with `law` (FL by default); `lag`: the drive lag the controller models."""
+               ic_vertices: int = 0, corridor=None, lag: ActuatorLag = ActuatorLag(), turn_share: float = TURN_SHARE,
+               turn_loss: TurnLoss | None = None) -> RepeatResult:
+        """One repeat with `law` (FL by default); `lag`: the drive lag the controller models; `turn_share`
+        and `turn_loss` (the one learned in earlier trials): the speed cap from the robot's turn
+        (turn_speed.py)."""
         path = self.path
         self.sim.reset(self.ref[0], trial)
         self.source.start_repeat(path, trial, np.random.default_rng([self.seed, 12, trial]))
@@ -102,7 +106,7 @@ class ClosedLoop:
         tracker = PathTracker(path, law or FLLaw(FLGains(), lag),
                               TrackerLimits(r.v_max_mps, r.w_max_radps, r.max_curvature, r.decel_max_mps2),
                               speed_mps=speed, ic_vertices=ic_vertices, corridor=corridor, lag=lag,
-                              period_s=self.period_s)
+                              period_s=self.period_s, turn_share=turn_share, turn_loss=turn_loss)
         core = ControllerCore(path, tracker, self.period_s)
         s = self.sim.sample()
         lat, head, hint, finished, observations, xy = [], [], 0, False, [], []

@@ -54,7 +54,8 @@ class Path:
         self.length_m = float(self.s[-1])
         self.heading_window_m = float(heading_window_m)
         self.reference_heading = self._averaged_heading(self.heading_window_m)
-        self.curvature = self._curvature(max(curvature_window_m, self.heading_window_m))
+        self.curvature_window_m = max(curvature_window_m, self.heading_window_m)
+        self.curvature = self._curvature(self.curvature_window_m)
         self._tree = cKDTree(poses[:, :2])
         self._rows = self.poses.tolist()             # the same poses as floats: project() reads a few per call
         self._s_list = self.s.tolist()
@@ -83,6 +84,12 @@ class Path:
             return heading
         padded = np.concatenate([np.full(half, heading[0]), heading, np.full(half, heading[-1])])
         return np.convolve(padded, np.ones(2 * half + 1) / (2 * half + 1), "valid")
+
+    def curvature_over(self, window_m: float) -> np.ndarray:
+        """Signed curvature (1/m) per vertex over `window_m` of route, at least the route's own window."""
+        if window_m <= self.curvature_window_m:
+            return self.curvature
+        return self._curvature(window_m)
 
     def _curvature(self, window_m: float) -> np.ndarray:
         """Signed curvature (1/m) per vertex: heading change over arc length across a window."""

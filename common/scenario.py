@@ -18,6 +18,7 @@ from services.controller.fl import FLGains
 from services.controller.ilc import ILCGains
 from services.controller.settings import NMPCSettings
 from services.controller.tracker import LOC_TIMEOUT_S, STOP_DECEL_MPS2
+from services.controller.turn_speed import TURN_SHARE
 from services.gp_store.config import FitConfig
 from services.localizer.config import PoseSourceConfig
 from services.scheduler.core import SchedulerParams
@@ -138,6 +139,9 @@ class ControllerSection:
     fl_lead: bool = _FL.lead        # FL and ILC: eq. 3.5 at the errors the drive's lag leads to (fl.py)
     loc_timeout_s: float = LOC_TIMEOUT_S      # stop when the newest estimate is older than this
     stop_decel_mps2: float = STOP_DECEL_MPS2  # gentle deceleration into the end of the route
+    # the speed is capped where the route's turn takes more than this share of the robot's turn at its
+    # limit (services/controller/turn_speed.py); 0: no cap
+    turn_share: float = TURN_SHARE
     # the taught heading is averaged over this much route into the reference the controller follows
     # (common/path.py); unset: C-/RC-LB-NMPC on a car-like robot its turning radius, else none
     route_heading_window_m: float | None = None
@@ -151,6 +155,8 @@ class ControllerSection:
             raise ValueError("fl_gamma1, fl_gamma2, loc_timeout_s and stop_decel_mps2 must be > 0")
         if self.route_heading_window_m is not None and not self.route_heading_window_m >= 0:
             raise ValueError("route_heading_window_m must be >= 0 (0: the taught heading as it is)")
+        if not 0.0 <= self.turn_share <= 1.0:
+            raise ValueError("turn_share must be in [0, 1] (0: no cap on the speed from the robot's turn)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -39,7 +39,7 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
     ctl = sc.controller
     controller = ControllerConfig(
         robot_name=robot, algorithm=ctl.algorithm, clock_mode=sc.sim.clock, period_s=sc.sim.period_s,
-        loc_timeout_s=ctl.loc_timeout_s, stop_decel_mps2=ctl.stop_decel_mps2,
+        loc_timeout_s=ctl.loc_timeout_s, stop_decel_mps2=ctl.stop_decel_mps2, turn_share=ctl.turn_share,
         route_heading_window_m=ctl.route_heading_window_m,
         limits=LimitsConfig(v_max_mps=rp.v_max_mps, w_max_radps=rp.w_max_radps,
                             max_curvature_per_m=rp.max_curvature if rp.drive == "ackermann" else 0.0,

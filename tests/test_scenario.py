@@ -6,6 +6,7 @@ import pytest
 from common.config import ConfigError, dump_toml, load_config
 from common.bins import BinPolicy
 from common.scenario import load_scenario, parse_scenario
+from services.controller.turn_speed import TURN_SHARE
 from services.controller.uncertainty import PriorStd
 from deploy.configs import service_configs
 from deploy.experiment import check_supported
@@ -189,3 +190,16 @@ def test_fl_leads_its_feedback_unless_the_scenario_says_fl_lead_false(tmp_path):
     path = tmp_path / "controller.toml"
     path.write_text(dump_toml(off))
     assert load_config(type(off), path).fl.lead is False
+
+
+def test_the_turn_share_of_the_speed_cap_reaches_the_controller_and_zero_turns_it_off(tmp_path):
+    """`[controller] turn_share` (services/controller/turn_speed.py) reaches the controller service's config
+    file and back; 0 turns the cap off, and a share beyond 1 is refused."""
+    default = service_configs(parse_scenario(_minimal()), str(tmp_path))["controller"]
+    off = service_configs(parse_scenario(_minimal(controller={"turn_share": 0.0})), str(tmp_path))["controller"]
+    assert default.turn_share == TURN_SHARE and off.turn_share == 0.0
+    path = tmp_path / "controller.toml"
+    path.write_text(dump_toml(off))
+    assert load_config(type(off), path).turn_share == 0.0
+    with pytest.raises(ValueError, match="turn_share"):
+        parse_scenario(_minimal(controller={"turn_share": 1.5}))

@@ -9,6 +9,7 @@ from services.controller.fl import FLGains
 from services.controller.ilc import ILCGains
 from services.controller.settings import NMPCSettings
 from services.controller.tracker import LOC_TIMEOUT_S, STOP_DECEL_MPS2
+from services.controller.turn_speed import TURN_SHARE
 
 
 _BINS = BinPolicy()
@@ -56,6 +57,7 @@ class ControllerConfig:
     period_s: float = 0.1
     loc_timeout_s: float = LOC_TIMEOUT_S
     stop_decel_mps2: float = STOP_DECEL_MPS2
+    turn_share: float = TURN_SHARE     # of the robot's turn the route's may take at speed (turn_speed.py); 0: off
     route_timeout_s: float = 5.0
     limits: LimitsConfig
     fl: FLGains = field(default_factory=FLGains)
@@ -71,6 +73,8 @@ class ControllerConfig:
     def __post_init__(self):
         if self.route_heading_window_m is not None and not self.route_heading_window_m >= 0:
             raise ValueError("route_heading_window_m must be >= 0 (0: the taught heading as it is)")
+        if not 0.0 <= self.turn_share <= 1.0:
+            raise ValueError("turn_share must be in [0, 1] (0: no cap on the speed from the robot's turn)")
 
     def heading_window_m(self, corridor_law: bool) -> float:
         """The route heading window in use. A car-like robot turns its heading by at most a radian within

@@ -40,6 +40,8 @@ class ControllerCore:
         # experiences only from map-refined estimates: a VO-only pose drifts, and the model would learn it
         if loc is not None and loc.status == "ok":
             obs = self.builder.add_estimate(loc.capture_tick, loc.capture_stamp_s, loc.vertex, loc.T_vertex_robot)
+            if obs is not None:
+                self._learn_turn(obs)
         observed = [obs] if obs is not None else []
         if loc is not None and loc.has_pose:
             candidate = self._realize(loc)
@@ -60,6 +62,12 @@ class ControllerCore:
             # a trial has depends on when the runner ends it
             observed = []
         return decision, observed
+
+    def _learn_turn(self, obs: Observation) -> None:
+        """The period's turn for the tracker's turn loss (turn_speed.py): the drive's turn rate by the lag
+        model and the ground's, the model's plus the residual."""
+        v, w_model = self.builder.model_speeds
+        self.tracker.learn_turn(v, w_model / self.tracker.lag.turn_gain, w_model + obs.g[2] / self.period_s)
 
     def _observe_turn(self, d: Decision) -> None:
         """The share of the steering margin the tracking commands take here, for the place cap."""

@@ -84,6 +84,7 @@ class ExperienceBuilder:
         self.min_speed = min_speed_mps
         self._est: deque[_Estimate] = deque(maxlen=3)
         self._cmd: dict[int, tuple[float, float]] = {}
+        self.model_speeds = (0.0, 0.0)    # the latest observation's f(x, u): speed and turn rate over its period
 
     def command_at(self, tick: int) -> tuple[float, float] | None:
         return self._cmd.get(tick)
@@ -113,6 +114,7 @@ class ExperienceBuilder:
         if abs(u1[0]) < self.min_speed and abs(v_act) < self.min_speed:
             return None  # standing still teaches nothing about driving
         vb, wb = self.lag.step(self.lag.state_before(e1.tick, self.command_at), u1)[0] if self.lag.active else u1
+        self.model_speeds = (float(vb), float(wb))
         g = body_residual(e1.pose, vb, wb, e2.pose, self.dt)
         a = (*e1.route, v_act, w_act, u1[0], u1[1], u0[0], u0[1])
         return Observation(stamp_s=e2.stamp_s, vertex=e1.vertex, v_cmd_mps=u1[0],

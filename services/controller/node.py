@@ -37,6 +37,7 @@ from services.controller.nominal_models import NominalModels
 from services.controller.registry import LawInputs, law_entry
 from services.controller.settings import NMPCSettings
 from services.controller.tracker import Decision, PathTracker, TrackerLimits
+from services.controller.turn_speed import TurnLoss
 
 class ControllerService(Service):
     name = "controller"
@@ -59,6 +60,8 @@ class ControllerService(Service):
         self.path_id = ""
         self.latest_loc: LocState | None = None
         self._stepped_capture = -1
+        # the robot's turn lost to skidding, learned in every trial under a nominal model (turn_speed.py)
+        self.turn_losses: dict[str, TurnLoss] = {}
         self.clock = node.subscribe_latest(keys.clock(r), Clock)
         node.subscribe_queue(keys.loc_state(r), LocState, self.inbox)
         # corridor changes at run time, kept per route for this and later trials
@@ -132,11 +135,13 @@ class ControllerService(Service):
         settings = self.cfg.nmpc.with_identified(self.nominal.of(req.path_id))
         try:
             law, ic_vertices = self._make_law(req.path_id, path, settings)
+            lag = settings.lag(self.cfg.period_s)
             tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps,
                                   loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2,
+                                  turn_share=self.cfg.turn_share,
                                   ic_vertices=ic_vertices, schedule=schedule,
-                                  corridor=self._corridor(req.path_id, path), lag=settings.lag(self.cfg.period_s),
-                                  period_s=self.cfg.period_s)
+                                  corridor=self._corridor(req.path_id, path), lag=lag, period_s=self.cfg.period_s,
+                                  turn_loss=self.turn_losses.setdefault(lag.model_tag, TurnLoss(lag.turn_gain)))
         except (OSError, ValueError) as exc:
             return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
         self.core = ControllerCore(path, tracker, self.cfg.period_s,
@@ -150,6 +155,12 @@ class ControllerService(Service):
             if snapshot is not None:
                 self.log.info("trial %d: %s", req.trial, snapshot.describe())
         window = f", the route's heading averaged over {path.heading_window_m:.1f} m" if path.heading_window_m else ""
+        capped_m, lowest = tracker.turn_capped()
+        if capped_m > 0.0:
+            loss = tracker.turn_loss.per_mps2
+            window += (f", slower over {capped_m:.1f} m where the route turns beyond {tracker.turn_share:.0%} of "
+                       f"the robot's turn at its limit (down to {lowest:.2f} m/s"
+                       + (f"; turn lost to skidding {loss:.2f} per m/s^2" if loss > 0 else "") + ")")
         return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
                           f"with {self.cfg.algorithm}, nominal model {tracker.lag.model_tag}{window}")
 
@@ -187,6 +198,9 @@ class ControllerService(Service):
         if core is not None:
             self.calibrations[(self.path_id, self.model_tag)] = core.calibration
         notes = [self._learn_ilc(core)] if self.ilc is not None and core is not None else []
+        if core is not None and core.tracker.turn_loss.samples:
+            loss = core.tracker.turn_loss
+            notes.append(f"turn lost to skidding {loss.per_mps2:.3f} per m/s^2 of drive load ({loss.samples} loaded periods)")
         self.ilc = None
         if self.outbox is not None:
             # a sync point for the runner: everything this trial produced is stored once we answer

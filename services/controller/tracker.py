@@ -2,7 +2,7 @@
 
 It owns everything that is not the steering law itself: waiting for the first estimate, holding the
 last command through a short dropout, stopping when localization is stale or lost, the speed profile
-(scheduled speed, robot limits, a gentle stop into the end of the route), angular-rate limits
+(scheduled speed, robot limits, the turn the robot makes, a gentle stop into the end of the route), angular-rate limits
 (actuator and, for an Ackermann robot, the steering limit), the initial-condition smoothing of
 eq. 3.16, and the end of the route. The law (laws.py) chooses w. Every stop it makes while the robot
 still rolls, a law's safety stop and the end of the route alike, brakes while steering along the route
@@ -26,6 +26,7 @@ from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 from services.controller.calibration import PlaceCap
 from services.controller.missed_variance import FloorsBySpeed
+from services.controller.turn_speed import TURN_SHARE, TurnLoss, turn_speed_caps
 
 LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
 STOP_DECEL_MPS2 = 0.4    # the gentle deceleration into the end of the route
@@ -72,7 +73,8 @@ class PathTracker:
     def __init__(self, path: Path, law: SteeringLaw, limits: TrackerLimits, *, speed_mps: float,
                  loc_timeout_s: float = LOC_TIMEOUT_S, stop_decel_mps2: float = STOP_DECEL_MPS2, ic_vertices: int = 0,
                  schedule: np.ndarray | None = None, corridor: Corridor | None = None,
-                 lag: ActuatorLag = ActuatorLag(), period_s: float = 0.1):
+                 lag: ActuatorLag = ActuatorLag(), period_s: float = 0.1, turn_share: float = TURN_SHARE,
+                 turn_loss: TurnLoss | None = None):
         self.path = path
         self.period_s = period_s
         self.lag = lag
@@ -93,6 +95,44 @@ class PathTracker:
         self._initial_error: tuple[float, float] | None = None
         self._last_cmd = (0.0, 0.0)
         self._fallback = FLLaw(FLGains(), lag)
+        self.turn_share = turn_share
+        # a skid-steer's turn loss with its drive's load, learned as it drives (an Ackermann's: not modelled)
+        self.turn_loss = turn_loss if turn_loss is not None else TurnLoss(lag.turn_gain)
+        self._caps_loss = self._loss_now()
+        self.turn_caps = self._turn_caps()
+
+    def _loss_now(self) -> float:
+        return self.turn_loss.per_mps2 if math.isinf(self.limits.max_curvature) else 0.0
+
+    def learn_turn(self, v_mps: float, w_drive_radps: float, w_radps: float) -> None:
+        """One period's turn (turn_speed.TurnLoss); the caps follow once the loss moved by a tenth."""
+        self.turn_loss.add(v_mps, w_drive_radps, w_radps)
+        c = self._loss_now()
+        if abs(c - self._caps_loss) > 0.1 * self._caps_loss + 1e-3:
+            self._caps_loss = c
+            self.turn_caps = self._turn_caps()
+
+    def _turn_caps(self) -> np.ndarray:
+        """(N,) the speed the robot can turn along the route at, per vertex (turn_speed.py), for the
+        fastest speed this trial asks; a turn share of 0: the asked speeds."""
+        share = self.turn_share
+        top = self.speed_mps if self.schedule is None else float(np.max(self.schedule, initial=self.speed_mps))
+        top = min(top, self.limits.v_max_mps)
+        if share <= 0.0:
+            return np.full(len(self.path), max(top, 0.0))
+        caps = turn_speed_caps(self.path, share * self.lag.turn_gain, self.limits.w_max_radps, self.limits.max_curvature,
+                               settle_m=top * self.lag.tau_w_s, decel_mps2=self.stop_decel,
+                               lead_m=top * (self.lag.tau_v_s + self.period_s), loss_per_mps2=self._caps_loss)
+        return np.minimum(caps, max(top, 0.0))
+
+    def turn_capped(self) -> tuple[float, float]:
+        """(metres of route, lowest speed) where the turn cap holds the robot below its asked speed."""
+        asked = np.array([self.scheduled_speed(s) for s in self.path.s.tolist()])
+        below = self.turn_caps < np.minimum(asked, self.limits.v_max_mps) - 1e-6
+        if not below.any():
+            return 0.0, math.inf
+        ds = np.diff(self.path.s, append=self.path.s[-1])
+        return float(ds[below].sum()), float(self.turn_caps[below].min())
 
     def scheduled_speed(self, distance_m: float) -> float:
         """Speed at a place on the route: the schedule's speed at the nearest vertex (thesis 5.3.1:
@@ -106,10 +146,11 @@ class PathTracker:
 
     def speed_at(self, distance_m: float) -> float:
         """What the robot is commanded at a distance along the route: the schedule, the robot's limit,
-        and a constant deceleration into the end of the route."""
+        the speed it can turn along the route at (turn_speed.py), and a constant deceleration into the
+        end of the route."""
         remaining = max(self.path.length_m - distance_m, 0.0)
         return min(self.scheduled_speed(distance_m), math.sqrt(2.0 * self.stop_decel * remaining) + 0.02,
-                   self.limits.v_max_mps)
+                   self.limits.v_max_mps, float(np.interp(distance_m, self.path.s, self.turn_caps)))
 
     def route_errors(self, loc: LocState) -> tuple[np.ndarray, float, float, float]:
         """Pose in the route frame and its (distance, lateral, heading) errors, continuous along the route.
