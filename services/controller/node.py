@@ -24,6 +24,7 @@ from common.path import Path
 from common.service import Control, Service, service_main
 from common.outbox_journal import OutboxJournal
 from common.store_client import ExperienceOutbox, WindowCache
+from services.controller.actuator import ActuatorLag
 from services.controller.calibration import SpreadCalibration, teach_places, teach_shares, teach_speeds
 from services.controller.config import ControllerConfig, StoreClientConfig
 from services.controller.core import ControllerCore
@@ -141,7 +142,7 @@ class ControllerService(Service):
                                   turn_share=self.cfg.turn_share,
                                   ic_vertices=ic_vertices, schedule=schedule,
                                   corridor=self._corridor(req.path_id, path), lag=lag, period_s=self.cfg.period_s,
-                                  turn_loss=self.turn_losses.setdefault(lag.model_tag, TurnLoss(lag.turn_gain)))
+                                  turn_loss=self._turn_loss(lag))
         except (OSError, ValueError) as exc:
             return self.reply(ctl, False, f"cannot prepare {self.cfg.algorithm}: {exc}")
         self.core = ControllerCore(path, tracker, self.cfg.period_s,
@@ -163,6 +164,13 @@ class ControllerService(Service):
                        + (f"; turn lost to skidding {loss:.2f} per m/s^2" if loss > 0 else "") + ")")
         return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
                           f"with {self.cfg.algorithm}, nominal model {tracker.lag.model_tag}{window}")
+
+    def _turn_loss(self, lag: ActuatorLag) -> TurnLoss:
+        """The turn loss the trial starts from (turn_speed.py): the one the earlier trials under this
+        nominal model learned; with learning off, none (it learns its own within the trial)."""
+        if not self.learning:
+            return TurnLoss(lag.turn_gain)
+        return self.turn_losses.setdefault(lag.model_tag, TurnLoss(lag.turn_gain))
 
     def _calibration(self, path_id: str, model_tag: str, horizon: int) -> SpreadCalibration:
         """Where the online check of the predicted spread starts: where the last trial on this route under

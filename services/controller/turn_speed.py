@@ -2,21 +2,22 @@
 
 A law at a fixed speed (LB-NMPC, FL, ILC) has no say over its speed. Where the route turns faster than
 the robot can at the asked speed, it holds its turn limit and leaves the route: a perturbed Grizzly
-asked for 1.85 m/s round 2.77 m corners, needing 0.67 rad/s of a robot that makes about 0.6 at its
+asked for 1.85 m/s round 2.77 m corners, needing 0.67 rad/s of a robot that makes about 0.5 at its
 limit there, left it by 4-7 m in every trial, learning or not (bench seed 6841). The tracker therefore
 caps its speed where the route's turn would take more than TURN_SHARE of the turn the robot makes at
 its limit,
 
-    v |kappa(s)| <= TURN_SHARE * k * w_limit(v),      k the identified turn gain,
+    v |kappa(s)| <= TURN_SHARE * k * w_limit(v) / (1 + c v w_limit(v)),
 
-with kappa averaged over the distance the turn drive settles in (a wiggle shorter than that is not
-followed at any speed), and brakes into each such place at the tracker's gentle deceleration, a drive
-lag early, so that it is at the cap when it gets there. The share left over is for the law's
-corrections and for what the teach pass cannot show: a skid-steer loses turn with lateral acceleration,
-and a teach pass at walking speed hardly shows how much.
+k the turn gain identified on the teach pass, c a skid-steer's turn lost to skidding per m/s^2 of its
+drive's load (TurnLoss, learned as it drives: a teach pass at walking speed hardly shows it), kappa
+averaged over the distance the turn drive settles in (a wiggle shorter than that is not followed at any
+speed). It brakes into each such place at the tracker's gentle deceleration, a speed lag early, so that
+it is at the cap when it gets there. The share left over is for the law's corrections.
 
 On an Ackermann, w_limit(v) = min(w_max, v kappa_max): a curvature beyond TURN_SHARE k kappa_max is no
-easier slower, and caps nothing. Pure: the route and the limits in, speeds out.
+easier slower, and caps nothing; its understeer, which does grow with speed, is not learned (c = 0).
+Pure: the route, the limits and the turns measured in, speeds out.
 """
 from __future__ import annotations
 
