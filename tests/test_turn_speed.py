@@ -75,19 +75,22 @@ def test_the_tracker_asks_the_capped_speed_in_the_corner_and_the_asked_one_elsew
 
 
 def test_the_turn_loss_is_the_one_the_ground_turned_the_robot_with():
-    """Periods of a robot that turns at k w_d / (1 + c v |w_d|), with noise on the measured turn: c comes
-    back; light loads and slow periods say nothing."""
+    """Corners of a robot that turns at k w_d / (1 + c v |w_d|), with noise on the measured turn: c comes
+    back. Slow periods, gentle curves and a drive held against the ground's yaw say nothing."""
     k, c = 0.6, 0.3
     rng = np.random.default_rng(3)
     loss = TurnLoss(k)
     for _ in range(400):
         v, wd = rng.uniform(0.5, 2.0), rng.choice([-1, 1]) * rng.uniform(0.2, 1.2)
-        loss.add(v, wd, k * wd / (1 + c * v * abs(wd)) + 0.02 * rng.standard_normal())
+        w = k * wd / (1 + c * v * abs(wd))
+        loss.add(v, wd, w + 0.02 * rng.standard_normal(), w)
     assert loss.per_mps2 == pytest.approx(c, rel=0.1)
     few = TurnLoss(k)
     for _ in range(50):
-        few.add(0.2, 1.0, 0.1)          # a crawl
-        few.add(1.0, 0.1, 0.01)         # a light load
+        few.add(0.2, 1.0, 0.1, 0.5)         # a crawl
+        few.add(1.0, 0.5, 0.3, 0.1)         # a gentle curve
+        few.add(1.0, 1.0, 0.0, 0.0)         # on a straight, held against a side slope's yaw
+        few.add(1.0, -1.0, 0.3, 0.5)        # in a corner, against it
     assert few.samples == 0 and few.per_mps2 == 0.0
 
 

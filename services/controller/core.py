@@ -67,7 +67,7 @@ class ControllerCore:
         """The period's turn for the tracker's turn loss (turn_speed.py): the drive's turn rate by the lag
         model and the ground's, the model's plus the residual."""
         v, w_model = self.builder.model_speeds
-        self.tracker.learn_turn(v, w_model / self.tracker.lag.turn_gain, w_model + obs.g[2] / self.period_s)
+        self.tracker.learn_turn(v, w_model / self.tracker.lag.turn_gain, w_model + obs.g[2] / self.period_s, obs.a[0])
 
     def _observe_turn(self, d: Decision) -> None:
         """The share of the steering margin the tracking commands take here, for the place cap."""

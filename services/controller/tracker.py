@@ -104,9 +104,11 @@ class PathTracker:
     def _loss_now(self) -> float:
         return self.turn_loss.per_mps2 if math.isinf(self.limits.max_curvature) else 0.0
 
-    def learn_turn(self, v_mps: float, w_drive_radps: float, w_radps: float) -> None:
-        """One period's turn (turn_speed.TurnLoss); the caps follow once the loss moved by a tenth."""
-        self.turn_loss.add(v_mps, w_drive_radps, w_radps)
+    def learn_turn(self, v_mps: float, w_drive_radps: float, w_radps: float, s_m: float) -> None:
+        """One period's turn at `s_m` along the route (turn_speed.TurnLoss); the caps follow once the loss
+        moved by a tenth."""
+        kappa = float(np.interp(s_m, self.path.s, self.path.curvature))
+        self.turn_loss.add(v_mps, w_drive_radps, w_radps, kappa * v_mps)
         c = self._loss_now()
         if abs(c - self._caps_loss) > 0.1 * self._caps_loss + 1e-3:
             self._caps_loss = c

@@ -29,9 +29,9 @@ import numpy as np
 from common.path import Path
 
 TURN_SHARE = 0.8        # of the robot's turn at its limit that the route's own turn may take
-LOAD_MIN_MPS2 = 0.3     # a skid-steer's drive load |v w_drive| below which a period says little of its loss
+LOAD_MIN_MPS2 = 0.3     # the route's own turn load |v^2 kappa| below which a period says little of the loss
 SPEED_MIN_MPS = 0.3
-SAMPLES_MIN = 10        # loaded periods before the loss is believed (a second's worth)
+SAMPLES_MIN = 10        # loaded periods before the loss is believed (a second of corners)
 
 
 @dataclass
@@ -42,15 +42,20 @@ class TurnLoss:
 
     k the turn gain identified on the teach pass, c (per m/s^2) what a teach pass at walking speed does
     not show. Least squares of c over the loaded periods (k w_d - w) = c (w v |w_d|), signs taken along
-    w_d. Kept from trial to trial by the controller's node, as the robot's own."""
+    w_d. Only corners count, where the drive turns the way the route does, which loads it: a drive held
+    against a side slope's yaw on a straight turns hard while the ground turns the robot back, which is
+    the slope, not skidding (a Husky on a 10 deg slope read 24 per m/s^2 from such periods). Kept from
+    trial to trial by the controller's node, as the robot's own."""
     turn_gain: float
     sxx: float = 0.0
     sxy: float = 0.0
     samples: int = 0
 
-    def add(self, v_mps: float, w_drive_radps: float, w_radps: float) -> None:
-        """One period: the speed, the drive's turn rate (before the turn gain) and the ground's."""
-        if abs(v_mps) < SPEED_MIN_MPS or abs(v_mps * w_drive_radps) < LOAD_MIN_MPS2:
+    def add(self, v_mps: float, w_drive_radps: float, w_radps: float, w_route_radps: float) -> None:
+        """One period: the speed, the drive's turn rate (before the turn gain), the ground's, and the
+        route's own (its curvature times the speed)."""
+        if abs(v_mps) < SPEED_MIN_MPS or abs(v_mps * w_route_radps) < LOAD_MIN_MPS2 \
+                or w_route_radps * w_drive_radps <= 0.0:
             return
         d, m = abs(w_drive_radps), (w_radps if w_drive_radps >= 0.0 else -w_radps)
         x = m * abs(v_mps) * d
