@@ -168,7 +168,7 @@ ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopping", 
 @dataclass(frozen=True, kw_only=True)
 class ControllerStatus(Message):
     """One per control step: what the controller saw, decided and how long it took."""
-    SCHEMA_VERSION = 4
+    SCHEMA_VERSION = 5
     stamp_s: float
     tick: int
     trial: int
@@ -211,6 +211,10 @@ class ControllerStatus(Message):
     learning_off_since_s: float
     learning_note: str
     step_late_ms: float
+    # v5: the speed the robot's turn allows here where it is below the asked one (0: it caps nothing here),
+    # and the skid-steer's turn lost to skidding the controller has learned (services/controller/turn_speed.py)
+    turn_cap_mps: float
+    turn_loss_per_mps2: float
 
 
 @dataclass(frozen=True, kw_only=True)

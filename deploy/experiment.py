@@ -616,6 +616,7 @@ def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, h
     # the online calibration's factor on the 1 s prediction's spread when the trial ended (calibration.py)
     stepped = rec.stepped_status()
     m["spread_factor_1s"] = stepped[-1].spread_factors[-1] if stepped and stepped[-1].spread_factors else None
+    m.update(turn_cap_figures(stepped))
     nominal, learned = d.rmse()
     if rec.trial in exp.schedules:
         v = np.asarray(exp.schedules[rec.trial].v_mps)
@@ -630,6 +631,15 @@ def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, h
               "lateral_residual_rmse_nominal_mps": float(nominal[1] / sc.sim.period_s),
               "lateral_residual_rmse_learned_mps": float(learned[1] / sc.sim.period_s)})
     return m
+
+
+def turn_cap_figures(stepped: list[ControllerStatus]) -> dict:
+    """The speed cap from the robot's turn over a trial (services/controller/turn_speed.py): the tracking
+    steps it held below the asked speed, the lowest cap among them (None: none), and the turn loss the
+    controller had learned by the end."""
+    caps = [s.turn_cap_mps for s in stepped if s.state == "tracking" and s.turn_cap_mps > 0.0]
+    return {"turn_capped_steps": len(caps), "turn_cap_min_mps": min(caps) if caps else None,
+            "turn_loss_per_mps2": stepped[-1].turn_loss_per_mps2 if stepped else None}
 
 
 def _run_trials(sc: Scenario, exp: Experiment, out: FsPath, summary: dict, records: list, series: list,

@@ -28,7 +28,7 @@ EXAMPLES = [
                        w_ff_radps=0.01, pred_x_m=[1.0, 1.1], pred_y_m=[0.0, 0.01], pred_theta_rad=[0.0, 0.02], sigma_lat_m=0.02,
                        sigma_head_rad=0.03, solver_status="converged", spread_factors=[1.0, 1.5],
                        pred_sigma_lat_m=[0.01, 0.02], pred_sigma_head_rad=[0.01, 0.03], learning_off_since_s=-1.0, learning_note="",
-                       step_late_ms=0.2),
+                       step_late_ms=0.2, turn_cap_mps=1.1, turn_loss_per_mps2=0.2),
     m.BridgeStatus(stamp_s=1.0, tick=10, trial=1, mode="repeat", running=True, watchdog_tripped=False,
                    cmd_age_s=0.1, v_cmd_applied_mps=0.5, w_cmd_applied_radps=0.0, rejected_msgs=3),
     m.TrialEvent(stamp_s=1.0, trial=1, mode="repeat", event="ended", reason="time limit", path_id="p1"),

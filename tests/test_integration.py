@@ -44,6 +44,8 @@ def test_experiment_with_two_trials_writes_its_outputs(tmp_path, scenario_file):
         assert t["travel_time_s"] > 0 and 0.5 < t["mean_speed_mps"] <= 0.85
         assert t["constraint_violations"] == 0 and t["mean_matched_features"] is None
         assert t["solve_ms_p99"] >= t["solve_ms_p50"] > 0
+        # a route the robot turns along at the asked speed with room to spare: no cap from its turn
+        assert t["turn_capped_steps"] == 0 and t["turn_cap_min_mps"] is None and t["turn_loss_per_mps2"] >= 0.0
     model = on_disk["identified_model"]           # the controller's nominal model, from the teach pass
     assert model["path_id"] == "itest" and model["model_tag"].startswith("unicycle-dt100ms-")
     assert 0.05 < model["actuator_tau_s"][1] < 0.3 and len(model["prior_std_base"]) == 3

@@ -127,6 +127,11 @@ class PathTracker:
                                lead_m=top * (self.lag.tau_v_s + self.period_s), loss_per_mps2=self._caps_loss)
         return np.minimum(caps, max(top, 0.0))
 
+    def turn_cap_at(self, distance_m: float) -> float:
+        """The turn's cap at a place where it holds the robot below the asked speed, else 0."""
+        cap = float(np.interp(distance_m, self.path.s, self.turn_caps))
+        return cap if cap < min(self.scheduled_speed(distance_m), self.limits.v_max_mps) - 1e-6 else 0.0
+
     def turn_capped(self) -> tuple[float, float]:
         """(metres of route, lowest speed) where the turn cap holds the robot below its asked speed."""
         asked = np.array([self.scheduled_speed(s) for s in self.path.s.tolist()])
