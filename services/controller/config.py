@@ -57,7 +57,8 @@ class ControllerConfig:
     period_s: float = 0.1
     loc_timeout_s: float = LOC_TIMEOUT_S
     stop_decel_mps2: float = STOP_DECEL_MPS2
-    turn_share: float = TURN_SHARE     # of the robot's turn the route's may take at speed (turn_speed.py); 0: off
+    # laws at a fixed speed: the share of the robot's turn the route's may take (turn_speed.py); 0: no cap
+    turn_share: float = TURN_SHARE
     route_timeout_s: float = 5.0
     limits: LimitsConfig
     fl: FLGains = field(default_factory=FLGains)

@@ -137,9 +137,10 @@ class ControllerService(Service):
         try:
             law, ic_vertices = self._make_law(req.path_id, path, settings)
             lag = settings.lag(self.cfg.period_s)
+            turn_share = 0.0 if law_entry(self.cfg.algorithm).chooses_speed else self.cfg.turn_share
             tracker = PathTracker(path, law, self.limits, speed_mps=req.speed_mps,
                                   loc_timeout_s=self.cfg.loc_timeout_s, stop_decel_mps2=self.cfg.stop_decel_mps2,
-                                  turn_share=self.cfg.turn_share,
+                                  turn_share=turn_share,
                                   ic_vertices=ic_vertices, schedule=schedule,
                                   corridor=self._corridor(req.path_id, path), lag=lag, period_s=self.cfg.period_s,
                                   turn_loss=self._turn_loss(lag))
@@ -208,7 +209,8 @@ class ControllerService(Service):
         notes = [self._learn_ilc(core)] if self.ilc is not None and core is not None else []
         if core is not None and core.tracker.turn_loss.samples:
             loss = core.tracker.turn_loss
-            notes.append(f"turn lost to skidding {loss.per_mps2:.3f} per m/s^2 of drive load ({loss.samples} loaded periods)")
+            notes.append(f"turn lost to skidding {loss.per_mps2:.3f} per m/s^2 of drive load "
+                         f"({loss.samples} loaded periods)")
         self.ilc = None
         if self.outbox is not None:
             # a sync point for the runner: everything this trial produced is stored once we answer

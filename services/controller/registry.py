@@ -43,6 +43,9 @@ class LawEntry:
     needs_corridor: bool = False          # the constrained laws read [constraints]
     window_hold_steps: int = 0
     uses_variance: bool = False           # plans with the GP's variance (uncertainty.py), not its mean alone
+    # chooses its speed under its own speed ladder (speed_ladder.py), which keeps the plan's turn rates under
+    # the drive's limit: the tracker's cap from the robot's turn (turn_speed.py) is for the others
+    chooses_speed: bool = False
 
 
 STEERING_LAWS: dict[str, LawEntry] = {e.name: e for e in (
@@ -53,10 +56,10 @@ STEERING_LAWS: dict[str, LawEntry] = {e.name: e for e in (
              uses_variance=True),
     LawEntry("c-lb-nmpc", "ch. 7, eq. 7.2-7.6, alpha = 0",
              lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for, alpha=0.0), "gp", True, WINDOW_HOLD_STEPS,
-             uses_variance=True),
+             uses_variance=True, chooses_speed=True),
     LawEntry("rc-lb-nmpc", "ch. 7, eq. 7.2-7.12",
              lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp", True, WINDOW_HOLD_STEPS,
-             uses_variance=True),
+             uses_variance=True, chooses_speed=True),
 )}
 
 if set(STEERING_LAWS) != set(ALGORITHMS):

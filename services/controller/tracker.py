@@ -122,7 +122,8 @@ class PathTracker:
         top = min(top, self.limits.v_max_mps)
         if share <= 0.0:
             return np.full(len(self.path), max(top, 0.0))
-        caps = turn_speed_caps(self.path, share * self.lag.turn_gain, self.limits.w_max_radps, self.limits.max_curvature,
+        lim = self.limits
+        caps = turn_speed_caps(self.path, share * self.lag.turn_gain, lim.w_max_radps, lim.max_curvature,
                                settle_m=top * self.lag.tau_w_s, decel_mps2=self.stop_decel,
                                lead_m=top * (self.lag.tau_v_s + self.period_s), loss_per_mps2=self._caps_loss)
         return np.minimum(caps, max(top, 0.0))
