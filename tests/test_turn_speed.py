@@ -117,3 +117,16 @@ def test_a_skid_steer_asked_for_more_turn_than_it_makes_slows_for_the_corners_an
                                                                                        capped.max_lateral)
     # the loss it learned lies between none and the simulator's 0.31 on top of the teach pass's gain
     assert 0.05 < loss.per_mps2 < 0.31
+
+
+def test_the_learned_loss_survives_a_restart_on_disk_and_a_stale_or_broken_file_is_learned_afresh(tmp_path, caplog):
+    from services.controller import turn_loss_file
+    loss = TurnLoss(0.555, sxx=40.0, sxy=4.8, samples=300)
+    turn_loss_file.save(tmp_path, "unicycle-gw555", loss)
+    back = turn_loss_file.load(tmp_path, "unicycle-gw555", 0.555)
+    assert back == loss and back.per_mps2 == pytest.approx(0.12)
+    assert turn_loss_file.load(tmp_path, "unicycle-other", 0.555).samples == 0          # none stored
+    assert turn_loss_file.load(tmp_path, "unicycle-gw555", 0.7).samples == 0            # another turn gain
+    turn_loss_file.file_of(tmp_path, "unicycle-gw555").write_bytes(b"\x93not a record")
+    assert turn_loss_file.load(tmp_path, "unicycle-gw555", 0.555).samples == 0
+    assert "learned afresh" in caplog.text

@@ -38,6 +38,7 @@ from services.controller.nominal_models import NominalModels
 from services.controller.registry import LawInputs, law_entry
 from services.controller.settings import NMPCSettings
 from services.controller.tracker import Decision, PathTracker, TrackerLimits
+from services.controller import turn_loss_file
 from services.controller.turn_speed import TurnLoss
 
 class ControllerService(Service):
@@ -171,7 +172,25 @@ class ControllerService(Service):
         nominal model learned; with learning off, none (it learns its own within the trial)."""
         if not self.learning:
             return TurnLoss(lag.turn_gain)
-        return self.turn_losses.setdefault(lag.model_tag, TurnLoss(lag.turn_gain))
+        tag = lag.model_tag
+        if tag not in self.turn_losses:
+            self.turn_losses[tag] = turn_loss_file.load(self._turn_loss_dir, tag, lag.turn_gain) \
+                if self.cfg.data_dir else TurnLoss(lag.turn_gain)
+        return self.turn_losses[tag]
+
+    @property
+    def _turn_loss_dir(self) -> FsPath:
+        return FsPath(self.cfg.data_dir) / "turn_loss"
+
+    def _save_turn_loss(self, core: ControllerCore) -> None:
+        """The turn loss learned so far under the trial's nominal model, for a controller started again."""
+        loss = core.tracker.turn_loss
+        if not (self.learning and self.cfg.data_dir and loss.samples):
+            return
+        try:
+            turn_loss_file.save(self._turn_loss_dir, core.tracker.lag.model_tag, loss)
+        except OSError as exc:
+            self.log.warning("turn loss not saved (%s): a restarted controller learns it again", exc)
 
     def _calibration(self, path_id: str, model_tag: str, horizon: int) -> SpreadCalibration:
         """Where the online check of the predicted spread starts: where the last trial on this route under
@@ -208,6 +227,7 @@ class ControllerService(Service):
             self.calibrations[(self.path_id, self.model_tag)] = core.calibration
         notes = [self._learn_ilc(core)] if self.ilc is not None and core is not None else []
         if core is not None and core.tracker.turn_loss.samples:
+            self._save_turn_loss(core)
             loss = core.tracker.turn_loss
             notes.append(f"turn lost to skidding {loss.per_mps2:.3f} per m/s^2 of drive load "
                          f"({loss.samples} loaded periods)")
