@@ -2,8 +2,8 @@
 
 It owns everything that is not the steering law itself: waiting for the first estimate, holding the
 last command through a short dropout, stopping when localization is stale or lost, the speed profile
-(scheduled speed, robot limits, the turn the robot makes, a gentle stop into the end of the route), angular-rate limits
-(actuator and, for an Ackermann robot, the steering limit), the initial-condition smoothing of
+(scheduled speed, robot limits, the turn the robot makes, a gentle stop into the end of the route),
+angular-rate limits (actuator and, for an Ackermann robot, the steering limit), the initial-condition smoothing of
 eq. 3.16, and the end of the route. The law (laws.py) chooses w. Every stop it makes while the robot
 still rolls, a law's safety stop and the end of the route alike, brakes while steering along the route
 (_brake).

@@ -5,9 +5,8 @@ say over its speed; C-/RC-LB-NMPC choose theirs under their speed ladder, which 
 Where the route turns faster than the robot can at the asked speed, such a law holds its turn limit and
 leaves the route: a perturbed Grizzly asked for 1.85 m/s round 2.77 m corners, needing 0.67 rad/s of a
 robot that makes about 0.5 at its limit there, left it by 4-7 m in every trial, learning or not (bench
-seed 6841). The tracker therefore
-caps its speed where the route's turn would take more than TURN_SHARE of the turn the robot makes at
-its limit,
+seed 6841). The tracker therefore caps its speed where the route's turn would take more than TURN_SHARE
+of the turn the robot makes at its limit,
 
     v |kappa(s)| <= TURN_SHARE * k * w_limit(v) / (1 + c v w_limit(v)),
 
