@@ -187,6 +187,12 @@ class Path:
         taught = self.poses[a, 2] + t * se2.wrap(self.poses[a + 1, 2] - self.poses[a, 2])
         return se2.wrap(ref - taught)
 
+    def curvature_at(self, distance_m: float) -> float:
+        """The signed curvature (1/m) at an arc length, interpolated between vertices; a loop's arc
+        length goes on round the loop, an open route's is clamped to it."""
+        d = distance_m % self.length_m if self.loop else distance_m
+        return float(np.interp(d, self.s, self.curvature))
+
     def pose_at(self, distance_m):
         """Interpolated route pose(s) at arc length(s), clamped to the route: (3,) or (M, 3)."""
         return self.frames_at(distance_m)[0]

@@ -14,7 +14,7 @@ import numpy as np
 from common.path import Path
 from services.controller.corridor import Corridor
 from services.controller.actuator import ActuatorLag
-from services.controller.fl import FLGains, fl_angular_rate, led_errors, route_turn_rate
+from services.controller.fl import MAX_LEAD_S, FLGains, fl_angular_rate, led_errors, route_turn_rate
 from services.controller.calibration import PlaceCap
 from services.controller.missed_variance import FloorsBySpeed
 
@@ -129,13 +129,15 @@ class FLLaw:
 
 def fl_command(ctx: StepContext, gains: FLGains, lag: ActuatorLag) -> float:
     """Eq. 3.5 at this step; with `gains.lead`, at the errors the robot's turn leads to over the
-    estimate's age and the drive's settling time (fl.py)."""
+    estimate's age and the drive's settling time, and with the route's turn where that takes it (fl.py)."""
     kappa = float(ctx.path.curvature[ctx.vertex])
     e_L, e_H = ctx.e_lat_m, ctx.e_head_rad
     if gains.lead:
         v_now = ctx.xi_now[0]
         delta = turn_now(ctx, lag) - route_turn_rate(v_now, e_L, e_H, kappa)
-        e_L, e_H = led_errors(v_now, e_L, e_H, delta, ctx.loc_age_s + lag.turn_settling_s(delta, v_now))
+        lead_s = min(max(ctx.loc_age_s + lag.turn_settling_s(delta, v_now), 0.0), MAX_LEAD_S)
+        e_L, e_H = led_errors(v_now, e_L, e_H, delta, lead_s)
+        kappa = ctx.path.curvature_at(ctx.s_m + abs(v_now) * lead_s)
     return fl_angular_rate(ctx.v_mps, e_L, e_H, kappa, gains, turn_gain=lag.turn_gain)
 
 
