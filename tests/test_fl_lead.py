@@ -127,3 +127,16 @@ def test_the_lead_takes_a_lagging_grizzly_round_its_corners_on_the_route():
     r = cl.repeat(1, 1.36, law=FLLaw(FLGains(), lag), lag=lag, turn_loss=TurnLoss(lag.turn_gain))
     assert r.finished
     assert r.max_lateral < 0.3 and np.sqrt(np.mean(r.lateral_m ** 2)) < 0.13, r.max_lateral
+
+
+def test_the_curvature_ahead_goes_round_a_loop_and_holds_at_an_open_routes_end():
+    """Path.curvature_at, which the lead reads ahead with: past a loop's end it is the curvature as far
+    into the loop (a corner's, where the loop ends on a straight); past an open route's end, the last
+    vertex's."""
+    from services.bridge.teach_driver import smooth_waypoints
+    loop = Path("o", smooth_waypoints([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]], 3.0, True), loop=True)
+    corner = float(loop.s[int(np.argmax(np.abs(loop.curvature)))])
+    assert abs(loop.curvature_at(corner)) > 0.2 and abs(loop.curvature[-1]) < 0.05
+    assert loop.curvature_at(loop.length_m + corner) == pytest.approx(loop.curvature_at(corner))
+    path = _straight_then_arc(5.0)
+    assert path.curvature_at(path.length_m + 3.0) == pytest.approx(float(path.curvature[-1]))

@@ -34,7 +34,7 @@ enough for the steering's rate. delta is the turn the estimates show (laws.turn_
 yaw, which the drive model does not know, counts too. The route's own turn w_ref is then the one at
 the place the lead takes the robot to (s + v T on the route, T the lead time): a corner is asked for as
 early as the drive needs to turn on arrival, and its end straightens as early. At the corner's own
-curvature, a Grizzly with a 0.46 s turn lag went wide into every corner and overshot at its end
+curvature, a Grizzly with a 0.45 s turn lag went wide into every corner and overshot at its end
 (tests/test_fl_lead.py). `lead = false` gives eq. 3.5 as the thesis writes it.
 """
 from __future__ import annotations
