@@ -148,7 +148,7 @@ def test_the_database_keeps_schedules_as_messages_and_loads_bodies_written_as_di
 
 
 # --- the guard (services/scheduler/core.py, module doc G1-G4), worked by hand -----------------------------
-from services.scheduler.core import (GuardCaps, apply_guard, growth_cap, guard_caps, guard_limits,  # noqa: E402
+from services.scheduler.core import (GuardCaps, apply_guard, growing_errors, growth_cap, guard_caps, guard_limits,  # noqa: E402
                                      neighbourhoods, plan, worst_nearby)
 
 
@@ -407,3 +407,34 @@ def test_a_decrease_that_did_not_help_is_not_repeated():
     np.testing.assert_allclose(after(0.32, params=no_limits(lambda_L=0.15, w_max=1.2, guard=False)).schedule, 0.05)
     with pytest.raises(ValueError, match="guard_help"):
         no_limits(guard_help=0.0)
+
+
+def test_errors_growing_towards_the_limit_at_one_speed_lower_the_vertex():
+    """G6, worked by hand. lambda_L 0.15 m, 11 vertices passed at 1.3 m/s in two trials. Lateral errors
+    0.10 then 0.13 m: shares 0.667 and 0.867 (>= guard_share 0.8); the speed explains none of the growth,
+    d = 0.2, and the next pass is predicted at 1.067 of the limit: lowered by gamma2 to 1.06. Eq. 4.2 alone
+    raises them to 1.5 (0.13 < 0.15); without G6 the guard's cap (0.12 * 1.3 / 0.13 = 1.2 < 1.3) keeps 1.3.
+    When trial 1 ran at 1.0 m/s, proportional growth to 1.3 m/s explains the 0.13 m (d = 0): kept at 1.3.
+    Below guard_share (0.06 -> 0.11 m, share 0.733, predicted 1.07): not lowered, capped at 0.12 * 1.3 / 0.11.
+    A first pass faster (1.6 m/s, 0.10 m) makes the growth d = 0.867 - 0.667 * 1.3 / 1.6 = 0.325: lowered,
+    unless G5 holds it back (slowed by 0.3 m/s, the error rose): then it stays at 1.3."""
+    n = 11
+    s, xy = straight(n)
+    p = no_limits(lambda_L=0.15, lambda_H=10.0, w_max=1.2)
+
+    def after(e0, e1, v0=1.3, params=p):
+        first, second = np.full(n, v0), np.full(n, 1.3)
+        history = [(first, passes_v([e0] * n, [1.0] * n, [0.3] * n, first)),
+                   (second, passes_v([e1] * n, [1.0] * n, [0.3] * n, second))]
+        return plan(second, history[-1][1], history, s, xy, params)
+
+    lowered = after(0.10, 0.13)
+    np.testing.assert_allclose(lowered.schedule, 1.06)
+    assert lowered.decisions.tolist() == [INCREASE] * n      # eq. 4.2's decisions, reported as they were
+    assert "guard: 11 vertices lowered where the errors grew towards the limit from trial to trial" in lowered.notes
+    np.testing.assert_allclose(after(0.10, 0.13, params=no_limits(lambda_L=0.15, w_max=1.2, guard=False)).schedule, 1.5)
+    np.testing.assert_allclose(after(0.10, 0.13, v0=1.0).schedule, 1.3)
+    np.testing.assert_allclose(after(0.06, 0.11).schedule, 0.12 * 1.3 / 0.11)
+    assert growing_errors([(np.full(n, 1.6), passes_v([0.10] * n, [1.0] * n, [0.3] * n, [1.6] * n)),
+                           (np.full(n, 1.3), passes_v([0.13] * n, [1.0] * n, [0.3] * n, [1.3] * n))], s, p).all()
+    np.testing.assert_allclose(after(0.10, 0.13, v0=1.6).schedule, 1.3)

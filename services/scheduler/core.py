@@ -27,7 +27,8 @@ by gamma1 when its criteria were met at the *old* speed; it does not ask whether
 the new one: a turn that took 0.86 rad/s at 0.7 m/s is scheduled at 0.9 m/s, where it takes ~1.1 rad/s
 against a 1.2 rad/s limit, and the corrections on top of that saturate the controller. The guard asks of a prediction at the
 new speed what eq. 4.2 asks of the last pass, with a margin, and caps the increase there (it never
-lowers a speed; G5 holds back decreases that did not help). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
+lowers a speed for a prediction at a new speed; G5 holds back decreases that did not help, G6 lowers where
+the errors grow at one speed). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
 |omega_cmd| of 4.2.2) and vertex i, over the latest `guard_trials` trials t:
 
   (G1) of the passes of trial t within guard_radius_m of vertex i (a peak moves a little with speed),
@@ -62,6 +63,15 @@ lowers a speed; G5 holds back decreases that did not help). For each criterion c
        trial crawling at 0.05 m/s with errors of 0.26-0.64 m). Held at its speed, the vertex is driven at
        one speed trial after trial, which the learned model can learn. A vertex whose turn rate broke its
        criterion is lowered as eq. 4.2 says: omega = v kappa falls with the speed.
+
+  (G6) a vertex is lowered where its errors grow from trial to trial towards the limit at a speed that
+       does not explain it: a rut that deepens with every pass, a patch that wears. With the worst share
+       of the limits nearby as in G5, S_t (latest) and S_t-1, and the pass speeds V (counted as at least
+       v_init, G4), the growth the speed leaves unexplained is d = S_t - S_t-1 V_t / V_t-1. Where the
+       latest pass took at least guard_share of a limit and S_t + d > 1 (the next pass, at the same speed,
+       beyond its limit), the vertex is lowered by gamma2 as eq. 4.2 would lower it one trial later, after
+       the violation (bench seed 4127's MATS s277878960: 6.3, 7.7, 9.6 deg against 10.5 deg over a rut
+       deepening 9 mm a pass, then 13.0 deg). G5 holds it back like any decrease.
 
 The learned model's variance at the new speed bin (thesis 5.3.2, 7.2) would be a third prediction, but
 it lives in the store and describes the disturbance, not the errors and turn rates the controller will
@@ -267,19 +277,23 @@ def initial_schedule(s: np.ndarray, xy: np.ndarray, p: SchedulerParams) -> Propo
 
 def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.ndarray, p: SchedulerParams,
                   failed_at: np.ndarray | None = None, caps: GuardCaps | None = None,
-                  withhold: np.ndarray | None = None) -> Proposal:
+                  withhold: np.ndarray | None = None, worsening: np.ndarray | None = None) -> Proposal:
     """The schedule for trial j+1 from trial j's schedule and experience. `failed_at[i]`: the lowest
     scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials;
-    `caps`: the guard's ceilings (guard_caps), `withhold`: the decreases it holds back (unhelpful_decreases);
-    both None for the thesis rule alone."""
+    `caps`: the guard's ceilings (guard_caps), `withhold`: the decreases it holds back (unhelpful_decreases),
+    `worsening`: the vertices it lowers (growing_errors); all None for the thesis rule alone."""
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
     lower = decisions == DECREASE
+    if worsening is not None and np.any(worsening & ~lower):
+        notes.append(f"guard: {int(np.sum(worsening & ~lower))} vertices lowered where the errors grew towards "
+                     f"the limit from trial to trial")
+        lower |= worsening
     if withhold is not None and np.any(lower & withhold):
         notes.append(f"guard: {int(np.sum(lower & withhold))} decreases withheld where slowing down did not "
                      f"cut the tracking error")
         lower &= ~withhold
-    sugg = np.where(decisions == INCREASE, prev + p.gamma1, np.where(lower, prev - p.gamma2, prev))
+    sugg = np.where(lower, prev - p.gamma2, np.where(decisions == INCREASE, prev + p.gamma1, prev))
     if p.use_all_trials and failed_at is not None:
         capped = (decisions == INCREASE) & (sugg >= failed_at)
         sugg = np.where(capped, np.maximum(prev, failed_at - p.gamma2), sugg)
@@ -301,7 +315,8 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     failed = failure_speeds(history, p) if p.use_all_trials and history else None
     caps = guard_caps(history, s, p) if p.guard and history else None
     withhold = unhelpful_decreases(history, s, p) if p.guard else None
-    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold)
+    worsening = growing_errors(history, s, p) if p.guard else None
+    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening)
 
 
 # --- the guard (module doc, G1-G4) ----------------------------------------------------------------------
@@ -404,6 +419,25 @@ def unhelpful_decreases(history: list[tuple[np.ndarray, VertexPasses]], s: np.nd
             expected = e0 * (1.0 - p.guard_help * (1.0 - v1 / v0))
             out |= (v1 <= v0 - p.gamma2 / 2) & (e1 > expected) & np.isfinite(e0) & np.isfinite(e1)
     return out & ~(np.abs(latest.w_cmd_radps) > p.lambda_omega * p.lambda_db)
+
+
+def growing_errors(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray,
+                   p: SchedulerParams) -> np.ndarray:
+    """G6 per vertex: the latest pass took at least guard_share of a tracking limit, and its growth over
+    the trial before, beyond what the speeds explain, would carry the next pass beyond the limit. All
+    False with fewer than two trials."""
+    n = len(s)
+    if len(history) < 2:
+        return np.zeros(n, dtype=bool)
+    lo, hi = neighbourhoods(s, p.guard_radius_m)
+    (sched0, before), (sched1, latest) = history[-2], history[-1]
+    v0 = np.maximum(pass_speeds(sched0, before), p.v_init)
+    v1 = np.maximum(pass_speeds(sched1, latest), p.v_init)
+    e0, e1 = _worst_share(before, lo, hi, p), _worst_share(latest, lo, hi, p)
+    with np.errstate(invalid="ignore"):
+        grown = e1 - e0 * v1 / v0
+        out = (e1 >= p.guard_share) & (e1 + grown > 1.0)
+    return out & np.isfinite(e0) & np.isfinite(e1)
 
 
 def _worst_share(pa: VertexPasses, lo: np.ndarray, hi: np.ndarray, p: SchedulerParams) -> np.ndarray:
