@@ -70,8 +70,9 @@ the errors grow at one speed). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
        v_init, G4), the growth the speed leaves unexplained is d = S_t - S_t-1 V_t / V_t-1. Where the
        latest pass took at least guard_share of a limit and S_t + d > 1 (the next pass, at the same speed,
        beyond its limit), the vertex is lowered by gamma2 as eq. 4.2 would lower it one trial later, after
-       the violation (bench seed 4127's MATS s277878960: 6.3, 7.7, 9.6 deg against 10.5 deg over a rut
-       deepening 9 mm a pass, then 13.0 deg). G5 holds it back like any decrease.
+       the violation (bench seed 4127's MATS s277878960, a corner over a rut deepening 9 mm a pass:
+       heading errors of 6.1, 8.0 and 9.3 deg in trials 5-7 against a 10.5 deg corridor, then 13.0 deg).
+       G5 holds it back like any decrease.
 
 The learned model's variance at the new speed bin (thesis 5.3.2, 7.2) would be a third prediction, but
 it lives in the store and describes the disturbance, not the errors and turn rates the controller will
@@ -319,7 +320,7 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening)
 
 
-# --- the guard (module doc, G1-G4) ----------------------------------------------------------------------
+# --- the guard (module doc, G1-G6) ----------------------------------------------------------------------
 CRITERIA = ("lateral error", "heading error", "turn rate")
 
 
