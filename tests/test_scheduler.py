@@ -416,6 +416,7 @@ def test_errors_growing_towards_the_limit_at_one_speed_lower_the_vertex():
     raises them to 1.5 (0.13 < 0.15); without G6 the guard's cap (0.12 * 1.3 / 0.13 = 1.2 < 1.3) keeps 1.3.
     When trial 1 ran at 1.0 m/s, proportional growth to 1.3 m/s explains the 0.13 m (d = 0): kept at 1.3.
     Below guard_share (0.06 -> 0.11 m, share 0.733, predicted 1.07): not lowered, capped at 0.12 * 1.3 / 0.11.
+    Near the limit (0.1485 m) the increases' cap, below the lowered speed, does not undo the lowering.
     A first pass faster (1.6 m/s, 0.10 m) makes the growth d = 0.867 - 0.667 * 1.3 / 1.6 = 0.325: lowered,
     unless G5 holds it back (slowed by 0.3 m/s, the error rose): then it stays at 1.3."""
     n = 11
@@ -434,6 +435,9 @@ def test_errors_growing_towards_the_limit_at_one_speed_lower_the_vertex():
     assert "guard: 11 vertices lowered where the errors grew towards the limit from trial to trial" in lowered.notes
     np.testing.assert_allclose(after(0.10, 0.13, params=no_limits(lambda_L=0.15, w_max=1.2, guard=False)).schedule, 1.5)
     np.testing.assert_allclose(after(0.10, 0.13, v0=1.0).schedule, 1.3)
+    # 0.1485 m (share 0.99): the guard's cap for an increase, 0.12 * 1.3 / 0.1485 = 1.05, lies below the
+    # lowered 1.06; the lowering stands (the cap, which keeps an increase at its speed, is not applied to it)
+    np.testing.assert_allclose(after(0.10, 0.1485).schedule, 1.06)
     np.testing.assert_allclose(after(0.06, 0.11).schedule, 0.12 * 1.3 / 0.11)
     assert growing_errors([(np.full(n, 1.6), passes_v([0.10] * n, [1.0] * n, [0.3] * n, [1.6] * n)),
                            (np.full(n, 1.3), passes_v([0.13] * n, [1.0] * n, [0.3] * n, [1.3] * n))], s, p).all()

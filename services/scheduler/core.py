@@ -295,13 +295,14 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
                      f"cut the tracking error")
         lower &= ~withhold
     sugg = np.where(lower, prev - p.gamma2, np.where(decisions == INCREASE, prev + p.gamma1, prev))
+    raised = np.where(lower, DECREASE, decisions)     # the increases left once G6 has lowered some
     if p.use_all_trials and failed_at is not None:
-        capped = (decisions == INCREASE) & (sugg >= failed_at)
+        capped = (raised == INCREASE) & (sugg >= failed_at)
         sugg = np.where(capped, np.maximum(prev, failed_at - p.gamma2), sugg)
         if np.any(capped):
             notes.append(f"{int(np.sum(capped))} increases capped below speeds that failed in earlier trials")
     if caps is not None:
-        sugg, note = apply_guard(sugg, prev, decisions, caps)
+        sugg, note = apply_guard(sugg, prev, raised, caps)
         notes += [note] if note else []
     sugg = np.maximum(sugg, 0.05)   # never schedule a standstill: the robot must finish the route
     sched, lim = limit(sugg, s, xy, p)
