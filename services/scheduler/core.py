@@ -286,14 +286,15 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
     lower = decisions == DECREASE
-    if worsening is not None and np.any(worsening & ~lower):
-        notes.append(f"guard: {int(np.sum(worsening & ~lower))} vertices lowered where the errors grew towards "
-                     f"the limit from trial to trial")
-        lower |= worsening
+    grown = np.zeros(len(lower), dtype=bool) if worsening is None else worsening & ~lower
+    lower |= grown
     if withhold is not None and np.any(lower & withhold):
         notes.append(f"guard: {int(np.sum(lower & withhold))} decreases withheld where slowing down did not "
                      f"cut the tracking error")
         lower &= ~withhold
+    if np.any(grown & lower):     # said after G5, which may hold some of them back
+        notes.append(f"guard: {int(np.sum(grown & lower))} vertices lowered where the errors grew towards the "
+                     f"limit from trial to trial")
     sugg = np.where(lower, prev - p.gamma2, np.where(decisions == INCREASE, prev + p.gamma1, prev))
     raised = np.where(lower, DECREASE, decisions)     # the increases left once G6 has lowered some
     if p.use_all_trials and failed_at is not None:
