@@ -135,7 +135,7 @@ def time_controller(cl: ClosedLoop, hyper: HyperMsg, windows: dict, trial: int, 
     models = LocalModels(lambda v, s: windows[(v, int(math.floor(s / POLICY.v_bin_mps)))], lambda: hyper,
                          settings.horizon * DT, POLICY.v_bin_mps, hold_steps=entry.window_hold_steps,
                          variance_caps=settings.vouch_lengthscales if entry.uses_variance else None)
-    law = entry.build(LawInputs(FLGains(), settings, DT, models.model_for))
+    law = entry.build(LawInputs(FLGains(), settings, DT, models.model_for, models.model_at))
     timed = TimedLaw(law, models, keep_every)
     corridor = Corridor(cl.path.s, 0.3, math.radians(20.0)) if entry.needs_corridor else None
     cl.repeat(trial + 1, SPEEDS[1], law=timed, corridor=corridor, lag=settings.lag(DT))

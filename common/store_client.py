@@ -210,7 +210,7 @@ class WindowCache:
         self._complete = False        # the route's snapshot is in: a bin not in _bins is empty, not missing
         self._path_id: str | None = None
         self._n_vertices = 0
-        self._position: tuple[int, float] | None = None
+        self._position: tuple[int, float, float] | None = None   # vertex, driven and asked speeds
         self._hyper: HyperMsg | None = None
         self._hyper_sub = None
         self._wake = threading.Event()
@@ -231,8 +231,10 @@ class WindowCache:
     def speed_bin(self, v: float) -> int:
         return int(np.floor(v / self.v_bin))
 
-    def set_position(self, vertex: int, speed_mps: float) -> None:
-        self._position = (vertex, speed_mps)
+    def set_position(self, vertex: int, speed_mps: float, asked_mps: float | None = None) -> None:
+        """Where the robot is and the speed it drives; `asked_mps`: the speed it is asked to drive there,
+        whose windows are fetched too (a law that slowed tests it: speed_ladder.py)."""
+        self._position = (vertex, speed_mps, speed_mps if asked_mps is None else asked_mps)
         self._wake.set()
 
     def local(self, vertex: int, speed_mps: float) -> LocalData:
@@ -399,7 +401,13 @@ class WindowCache:
         path_id, pos = self._path_id, self._position
         if path_id is None or pos is None:
             return
-        vertex, speed = pos
+        vertex, driven, asked = pos
+        for speed in dict.fromkeys((driven, asked)):
+            if not self._prefetch_at(path_id, vertex, speed):
+                return
+
+    def _prefetch_at(self, path_id: str, vertex: int, speed: float) -> bool:
+        """Fetch the windows of `speed` from `vertex` to the lookahead; False once the route changed."""
         l = self.speed_bin(speed)
         lo = max(0, vertex - self.cv)
         hi = min(self._n_vertices - 1, vertex + self.lookahead + self.cv)
@@ -412,8 +420,9 @@ class WindowCache:
                 continue
             self._fetch(path_id, v + self.cv, speed)
             if self._path_id != path_id:
-                return
+                return False
             v += 2 * self.cv + 1
+        return True
 
     def _get_window(self, path_id: str, center: int, speed: float, extra: str = "",
                     timeout_s: float | None = None) -> ExperienceWindow | None:

@@ -76,6 +76,22 @@ def test_with_hysteresis_an_empty_window_falls_back_to_the_last_one_with_experie
     assert nothing.model_for(ctx(path, 0.3)) is None     # the thesis's window: no experience, no model
 
 
+def test_the_window_at_another_speed_is_drawn_at_its_own_bin_and_leaves_the_held_bin_alone():
+    """A law that slowed tests the asked speed on the window of that speed's bin (speed_ladder.py): drawn
+    around where a plan at that speed goes, without moving the bin the law's own window holds; nothing
+    where that bin has no experience or is the law's own."""
+    path, store = straight(), Store({2, 8})
+    models = LocalModels(store.window, hyper, 1.0, V_BIN, hold_steps=5)
+    slow = models.model_for(ctx(path, 0.6))
+    fast = models.model_at(ctx(path, 0.6), 2.1)
+    assert store.asked == [2, 8] and fast is not None and fast is not slow
+    models.model_for(ctx(path, 0.8))                  # one call in the neighbouring bin: the window holds
+    assert store.asked[-1] == 2
+    assert models.model_at(ctx(path, 0.6), 1.4) is None      # no experience at 1.4
+    assert models.model_at(ctx(path, 0.6), 0.7) is None      # the law's own window's bin
+    assert LocalModels(store.window, lambda: None, 1.0, V_BIN).model_at(ctx(path, 0.6), 2.1) is None
+
+
 def test_prepare_builds_the_next_steps_window_so_the_step_does_not():
     """The node calls `prepare` after publishing a command: the window GP where the robot will be next is
     built then, and the next step finds it (no build inside the step); a step that ends up elsewhere

@@ -19,7 +19,7 @@ from services.controller.horizon_covariance import HorizonCovariance, variance_m
 from services.controller.laws import StepContext
 from services.controller.nmpc import build_problem
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import SPEED_LADDER, _try_rung, fastest_fitting_rung, overflow
+from services.controller.speed_ladder import SPEED_LADDER, AskedModel, _try_rung, fastest_fitting_rung, overflow
 from services.controller.minmax import SIGNS
 from services.controller.missed_variance import MissedVariance
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
@@ -498,6 +498,33 @@ def test_between_a_rung_that_fits_and_one_that_misses_the_ladder_drives_where_th
     assert np.allclose(a_out, A)
     cap[:, 1:3] = 3.0 * rung1.sig[:, 1:3] / 0.99
     assert fastest_fitting_rung(base, v, w, cov, cap, 3.0, 2.0, 2, a_out).scale == SPEED_LADDER[1]
+
+
+def test_a_law_slowed_below_its_windows_speeds_climbs_to_the_asked_speed_where_that_speeds_window_fits():
+    """Slowed to the 0.32 rung, the law's window knows nothing of faster speeds: every faster rung is
+    tested on twice the model's spread and the climb by one rung misses. Tested on the asked speed's own
+    window (the model's spread), the top rung fits by 5 % and is taken, with its GP inputs; without that
+    window, or where it is no narrower, the ladder stays on its rung."""
+    s, base, v, w, narrow = _ladder_on_the_arc()
+    wide = dataclasses.replace(narrow, factors=np.full(base.K, 2.0))
+    a_out = np.empty((base.K, 9))
+    top = _try_rung(0, base, v, w, narrow, a_out, s.v_min_mps)
+    cap = np.full((base.K, 3), np.inf)
+    cap[:, 1:3] = 3.0 * top.sig[:, 1:3] / 0.95
+    slowed = SPEED_LADDER.index(0.32)
+    assert overflow(_try_rung(slowed - 1, base, v, w, wide, a_out, s.v_min_mps), cap, 3.0, 2.0) > 1.0
+    assert overflow(_try_rung(slowed, base, v, w, wide, a_out, s.v_min_mps), cap, 3.0, 2.0) <= 1.0
+    chosen = fastest_fitting_rung(base, v, w, wide, cap, 3.0, 2.0, slowed, a_out,
+                                  asked=lambda: AskedModel(None, base, narrow))
+    assert chosen.index == 0 and chosen.scale == 1.0 and chosen.asked_model
+    A = np.empty_like(a_out)
+    _try_rung(0, base, v, w, narrow, A, s.v_min_mps)
+    np.testing.assert_allclose(a_out, A)
+    for asked in (None, lambda: None, lambda: AskedModel(None, base, wide)):
+        stays = fastest_fitting_rung(base, v, w, wide, cap, 3.0, 2.0, slowed, a_out, asked=asked)
+        assert stays.index == slowed and not stays.asked_model
+        _try_rung(slowed, base, v, w, wide, A, s.v_min_mps, scale=stays.scale)
+        np.testing.assert_allclose(a_out, A)
 
 
 def _ladder_where_nothing_fits(slow_factor: float):

@@ -97,6 +97,19 @@ class LocalModels:
         self.last_n, self.last_version = len(A), h.version
         return self._gp(center, speed, h, A, G)
 
+    def model_at(self, ctx: StepContext, speed_mps: float) -> RestFaded | None:
+        """The GP of the window drawn at `speed_mps`'s own bin, centred where a plan at that speed goes,
+        the held bin (speed_bin) left as it is: for a law that tests a speed it does not drive (the speed
+        ladder's top rung, speed_ladder.py). None where that bin is the one the law's own window is drawn
+        at, or its window holds no experience."""
+        h, b = self.hyper(), int(np.floor(speed_mps / self.v_bin))
+        if h is None or b == self._bin:
+            return None
+        center = self._center(ctx.path, ctx.s_m, speed_mps)
+        speed = (b + 0.5) * self.v_bin
+        A, G = self.window(center, speed)
+        return self._gp(center, speed, h, A, G)
+
     def prepare(self, path, s_m: float, v_mps: float) -> None:
         """Build, between control steps, the GP of the window the next step will most likely ask for
         (where the robot will be after this command, at this speed; the speed bin as it stands): a new

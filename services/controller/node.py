@@ -306,7 +306,8 @@ class ControllerService(Service):
                                       hold_steps=entry.window_hold_steps,
                                       variance_caps=settings.vouch_lengthscales if entry.uses_variance else None)
         law = entry.build(LawInputs(self.gains, settings, self.cfg.period_s,
-                                    self.models.model_for if self.models else (lambda ctx: None), self.ilc))
+                                    self.models.model_for if self.models else (lambda ctx: None),
+                                    self.models.model_at if self.models else (lambda ctx, v: None), self.ilc))
         return law, self.cfg.ilc.ic_vertices if entry.learns == "ilc" else 0
 
     def _corridor(self, path_id: str, path: Path) -> Corridor:
@@ -422,8 +423,8 @@ class ControllerService(Service):
         hyperparameters' version."""
         if self.cache is None:
             return 0, 0
-        speed = d.v_mps if d.v_mps > 0 else self.speed_mps   # the scheduled speed here, when moving
-        self.cache.set_position(d.vertex, speed)
+        speed = d.v_mps if d.v_mps > 0 else self.speed_mps   # the commanded speed here, when moving
+        self.cache.set_position(d.vertex, speed, self.core.tracker.speed_at(d.distance_m))
         local = self.cache.local(d.vertex, speed)
         self._note_learning(local.missing_bins, now_s)
         if self.models is not None:

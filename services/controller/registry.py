@@ -26,6 +26,7 @@ class LawInputs:
     nmpc: NMPCSettings
     period_s: float
     model_for: Callable[[StepContext], object] = lambda ctx: None   # the local window's GP, or None
+    model_at: Callable[[StepContext, float], object] = lambda ctx, v: None   # ... drawn at speed v
     ilc: ILCMemory | None = None                                      # the route's learned feedforward
 
     @property
@@ -55,10 +56,12 @@ STEERING_LAWS: dict[str, LawEntry] = {e.name: e for e in (
     LawEntry("mm-lb-nmpc", "ch. 6, eq. 6.2-6.14", lambda i: MMLBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp",
              uses_variance=True),
     LawEntry("c-lb-nmpc", "ch. 7, eq. 7.2-7.6, alpha = 0",
-             lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for, alpha=0.0), "gp", True, WINDOW_HOLD_STEPS,
+             lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for, alpha=0.0, model_at=i.model_at), "gp", True,
+             WINDOW_HOLD_STEPS,
              uses_variance=True, chooses_speed=True),
     LawEntry("rc-lb-nmpc", "ch. 7, eq. 7.2-7.12",
-             lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for), "gp", True, WINDOW_HOLD_STEPS,
+             lambda i: RCLBNMPCLaw(i.nmpc, i.period_s, i.model_for, model_at=i.model_at), "gp", True,
+             WINDOW_HOLD_STEPS,
              uses_variance=True, chooses_speed=True),
 )}
 

@@ -28,6 +28,7 @@ corridor).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -45,7 +46,7 @@ from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
 from services.controller.missed_variance import SpreadFloors
 from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import SPEED_LADDER, Rung, fastest_fitting_rung
+from services.controller.speed_ladder import SPEED_LADDER, AskedModel, Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
@@ -83,6 +84,14 @@ def _capped(ctx: StepContext) -> tuple[StepContext, str]:
     note = f"held to {c:.2f} m/s: the last pass here took {cap.share:.0%} of the {cap.what} at {cap.at_m:.0f} m" \
         if c < ctx.v_mps else ""
     return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), c)), note
+
+
+def _beyond(ctx: StepContext, cov: HorizonCovariance) -> tuple[float, HorizonCovariance] | None:
+    """From which speed a rung is widened by the teach pass's needs at the place, and `cov` so widened
+    (calibration.beyond_at; None: nowhere)."""
+    if not ctx.spread_factors_beyond or not math.isfinite(ctx.spread_beyond_mps):
+        return None
+    return ctx.spread_beyond_mps, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond))
 
 
 def _at_the_slowest(rung: Rung) -> bool:
@@ -175,13 +184,16 @@ class CorridorStep:
 
 
 class RCLBNMPCLaw:
-    """(Robust) Constrained LB-NMPC (thesis ch. 7); alpha = 0 gives C-LB-NMPC."""
+    """(Robust) Constrained LB-NMPC (thesis ch. 7); alpha = 0 gives C-LB-NMPC. `model_for(ctx)`: the GP of
+    the local window at ctx.v_mps; `model_at(ctx, v)`: the one drawn at speed v, for the speed ladder's
+    top rung while the law drives slower (speed_ladder.py)."""
 
     def __init__(self, settings: NMPCSettings, dt: float, model_for: Callable[[StepContext], object] = lambda c: None,
-                 alpha: float | None = None):
+                 alpha: float | None = None, model_at: Callable[[StepContext, float], object] = lambda c, v: None):
         self.settings = settings
         self.dt = dt
         self.model_for = model_for
+        self.model_at = model_at
         self.alpha = settings.alpha if alpha is None else alpha
         self.name = "rc-lb-nmpc" if self.alpha > 0 else "c-lb-nmpc"
         self._qp: CorridorQP | None = None
@@ -205,9 +217,12 @@ class RCLBNMPCLaw:
         lo_lat, hi_lat, head_lim = corridor.at(problem.ref.s_m[1:])
         cap = self._band_cap(lo_lat, hi_lat, head_lim)
         A = np.empty((base.K, 9))
-        rung = self._speed_cap(ctx, problem, v, w, cov, cap, A) if self.alpha > 0 else None
+        # the asked speed's model costs a GP and a problem, and most steps never ask for it
+        asked = functools.cache(lambda: self._asked_model(ctx, gp, probes, v))
+        rung = self._speed_cap(ctx, problem, v, w, cov, cap, A, asked) if self.alpha > 0 else None
         if rung is not None:
             problem, v, w, cov = rung.problem, rung.v, rung.w, rung.cov
+            gp = asked().model if rung.asked_model else gp
             v_max = np.maximum(np.minimum(v_max, rung.scale * base.v), s.v_min_mps)
         if gp is not None and s.crab_reference:    # the learned crab at the speeds this step starts from
             ref = problem.ref
@@ -288,16 +303,26 @@ class RCLBNMPCLaw:
         return cap
 
     def _speed_cap(self, ctx: StepContext, problem: HorizonProblem, v: np.ndarray, w: np.ndarray,
-                   cov: HorizonCovariance, cap: np.ndarray, A: np.ndarray) -> Rung:
+                   cov: HorizonCovariance, cap: np.ndarray, A: np.ndarray,
+                   asked: Callable[[], AskedModel | None] | None = None) -> Rung:
         last = self._rung if self.last_plan is not None else None
-        beyond = None
-        if ctx.spread_factors_beyond and math.isfinite(ctx.spread_beyond_mps):
-            beyond = (ctx.spread_beyond_mps, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond)))
         # the drive's turn-rate limit at any speed (its curvature limit, if any, left out: speed_ladder.py)
-        rung = fastest_fitting_rung(problem, v, w, cov, cap, self.alpha, ctx.w_limit_at(math.inf), last, A, beyond,
-                                    ctx.spread_floors)
+        rung = fastest_fitting_rung(problem, v, w, cov, cap, self.alpha, ctx.w_limit_at(math.inf), last, A,
+                                    _beyond(ctx, cov), ctx.spread_floors, asked)
         self._rung = rung.index
         return rung
+
+    def _asked_model(self, ctx: StepContext, gp, probes: tuple, v: np.ndarray) -> AskedModel | None:
+        """The step's problem and covariance on the window drawn at the asked speed (None: no such window,
+        or it is the one the law drives with)."""
+        model = self.model_at(ctx, ctx.v_mps)
+        if model is None or model is gp:
+            return None
+        s = self.settings
+        base, _ = build_problem(ctx, s, self.dt, model, probes)
+        cov = HorizonCovariance.at_start(ctx.pose_cov, base.start, variance_model(model, s), self.dt, s.sp_gamma,
+                                         ctx.spread_factors, _floors_at(ctx, base.v))
+        return AskedModel(model, base.following(v), cov, _beyond(ctx, cov))
 
     def _uncertainty_too_wide(self, nlp: CorridorNLP) -> str:
         """Why the robot must stop: the first predicted step's alpha-sigma region does not fit ("" if it does)."""

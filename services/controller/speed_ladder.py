@@ -12,11 +12,20 @@ the scheduled speed, the slack price dominates the cost and the plan flips betwe
 that fits and the one above it that does not, the ladder drives at the speed where the fit ends, if that
 fits (_between). A rung faster than the passes over the place vouch for is widened by the teach pass's
 needs there (calibration.beyond_at): its covariance model is the rung's own.
+
+The learned model is the local window drawn at the speed the law drives (thesis 5.3.2), whose speed bins
+end a bin or two above it. Once the law has slowed below the speeds its earlier trials drove at a place,
+every faster rung lies beyond its window's experience and is tested on the prior's variance; none fits,
+and the robot stays slow until the route leaves the place (bench seed 8371: a MATS whose rut surprise at
+2.1 m/s held it at 1.2-1.5 m/s for the next 30 m of a straight it had driven at 2.1 in four trials, and a
+ROC6 slower every trial, 110 s to 181 s). So where the climb by one rung fails, the asked speed's rung is
+also tested on the window drawn at its own speed (AskedModel), and taken where it fits.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -43,6 +52,18 @@ class Rung:
     sig_loc: np.ndarray     # (K, 3) the localizer's share of them (never widened)
     cov: HorizonCovariance  # the covariance model it was tested with
     scale: float            # the share of the scheduled speeds it drives: its rung's, or one between two
+    asked_model: bool = False   # tested on the asked speed's own window (AskedModel), not the driven speed's
+
+
+@dataclass(frozen=True)
+class AskedModel:
+    """The learned model of the local window drawn at the asked speed, for testing the top rung when the
+    law drives slower (module docstring): the window's GP, the step's problem with it (following the warm
+    start's speeds, as the ladder's own), its covariance model, and its widening beyond the places' passes."""
+    model: object
+    problem: HorizonProblem
+    cov: HorizonCovariance
+    beyond: tuple[float, HorizonCovariance] | None = None
 
 
 def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
@@ -81,12 +102,14 @@ def overflow(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> fl
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
                          cap: np.ndarray, alpha: float, w_rate_cap: float, last_index: int | None,
                          a_out: np.ndarray, beyond: tuple[float, HorizonCovariance] | None = None,
-                         floors: FloorsBySpeed | None = None) -> Rung:
+                         floors: FloorsBySpeed | None = None,
+                         asked: Callable[[], AskedModel | None] | None = None) -> Rung:
     """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits;
     where none does, the one that misses by least (`overflow`; the faster of equals). `cap` (K, 3): the
     most alpha * sigma may take of the corridor; `w_rate_cap`: the drive's turn-rate limit at any speed.
     `a_out` (K, 9) receives the chosen rung's GP inputs. `beyond`: the speed above which a rung is tested
-    with the other covariance model; `floors`: the calibration's, taken at each rung's speed.
+    with the other covariance model; `floors`: the calibration's, taken at each rung's speed; `asked`: the
+    asked speed's own model (built on demand; None where it is the driven speed's), for a climb that fails.
 
     Slower is not always narrower: the prior's speed-independent terms, a place's remembered widening and
     what a crawl itself missed do not fade at a crawl, and a side slope whose slide acts per second needs
@@ -101,12 +124,31 @@ def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov
         if miss <= 1.0:
             return rung if faster is None else _between(rung, miss, faster, base, v, w, cov, cap, alpha, w_rate_cap,
                                                         a_out, beyond, floors)
+        if k == first > 0 and asked is not None and (top := _asked_top(asked, v, w, cap, alpha, w_rate_cap, a_out,
+                                                                       base.s.v_min_mps, floors)) is not None:
+            return top
         faster = (rung.scale, miss)
         if miss < best_miss:
             best, best_miss = rung, miss
             best_a[:] = a_out
     a_out[:] = best_a
     return best
+
+
+def _asked_top(asked: Callable[[], AskedModel | None], v: np.ndarray, w: np.ndarray, cap: np.ndarray,
+               alpha: float, w_rate_cap: float, a_out: np.ndarray, v_min: float,
+               floors: FloorsBySpeed | None) -> Rung | None:
+    """The top rung tested on the asked speed's own window, if there is one and it fits there (a_out then
+    holds its GP inputs; else a_out is left as it was)."""
+    model = asked()
+    if model is None:
+        return None
+    a_then = a_out.copy()
+    top = _try_rung(0, model.problem, v, w, model.cov, a_out, v_min, model.beyond, floors)
+    if overflow(top, cap, alpha, w_rate_cap) <= 1.0:
+        return replace(top, asked_model=True)
+    a_out[:] = a_then
+    return None
 
 
 def _between(fits: Rung, miss: float, faster: tuple[float, float], base: HorizonProblem, v: np.ndarray,
