@@ -227,6 +227,10 @@ def test_cache_prefetches_windows_and_fits_on_request(rig):
         wait_until(lambda: cache.local(40, 0.5).missing_bins == 0, 10, "prefetch of the windows ahead")
         local = cache.local(20, 0.5)
         assert len(local.A) == 11 * 4 and local.G.shape == (44, 3)   # 11 vertices x c_bin, one speed bin
+        assert cache.local(40, 1.5).missing_bins > 0
+        cache.set_position(20, 0.5, 1.5)      # asked to drive 1.5 m/s there: its windows are fetched too
+        wait_until(lambda: cache.local(40, 1.5).missing_bins == 0, 10, "prefetch of the asked speed's windows")
+        assert len(cache.local(40, 1.5).A) == 0 and len(cache.local(20, 0.5).A) == 44
         hyper = query_one(rig.node.session, keys.store_fit("dur"), HyperMsg, timeout_s=300)
         assert hyper.version == 1 and hyper.n_total == len(set(range(120))) * 4 or hyper.n_total > 0
         wait_until(lambda: cache.hyper is not None and cache.hyper.version == 1, 10, "hyperparameters to arrive")
