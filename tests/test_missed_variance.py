@@ -155,3 +155,58 @@ def test_the_widened_spread_takes_the_largest_of_factor_floor_and_least_share_an
         fd = (cov.widened(up, loc)[i, 1] - cov.widened(down, loc)[i, 1]) / (2 * h)
         assert analytic[i, i] == pytest.approx(fd, rel=1e-5, abs=1e-9)
     assert analytic[3, 3] == 0.0                         # at the least share the spread does not follow the model's
+
+
+def test_the_worst_places_misses_hold_near_them_and_the_robots_jitter_everywhere():
+    """A slide at one place (bin 26, heading asked 0.03 rad^2) amid jitter along the whole route (up to
+    4e-4): a plan near the slide is held to it, one 40 m before it only to the jitter (the largest value
+    outside the worst places and their neighbours, as brute force finds it). A second, smaller event
+    (bin 10) is the other worst place; a third (bin 40) is route-wide again."""
+    rng = np.random.default_rng(3)
+    mem = MissedVariance(horizon=1)
+    jitter = rng.uniform(0.0, 4e-4, 600)
+    places = np.arange(600) // 10                      # 10 predictions per 2 m bin
+    for i in range(600):
+        mem.add(1, (0.0, jitter[i]), (0.0, 0.0), 1.0, int(places[i]))
+    for place, asked in ((26, 0.03), (10, 0.01), (40, 0.005)):
+        for _ in range(8):
+            mem.add(1, (0.0, asked), (0.0, 0.0), 0.4, place)
+    assert mem.floors(1.0).added[0, 1] == pytest.approx(MARGIN * 0.03)          # every place counts
+    near_slide = mem.floors(1.0, range(25, 28)).added[0, 1]
+    far = mem.floors(1.0, range(5, 8)).added[0, 1]
+    assert near_slide == pytest.approx(MARGIN * 0.03)
+    assert far == pytest.approx(MARGIN * 0.005)                                 # bin 40 is not held apart
+    np.testing.assert_allclose(mem.by_speed(range(5, 8)).at(1.0).added, mem.floors(1.0, range(5, 8)).added)
+    for place in (26, 40):
+        for _ in range(8):
+            mem.add(1, (0.0, 0.0), (0.0, 0.0), 1.0, place)    # push the events out of the ring ...
+    calm = MissedVariance(horizon=1)
+    for i in range(600):
+        calm.add(1, (0.0, jitter[i]), (0.0, 0.0), 1.0, int(places[i]))
+    away = (places < 9) | (places > 11)                        # ... jitter alone: the worst two places apart
+    kept = calm.held_near(range(0, 2))[0, 1]
+    assert 0 < np.count_nonzero(kept == 0) <= 60
+    assert calm.floors(1.0, range(0, 2)).added[0, 1] >= MARGIN * np.sort(jitter[away])[-61]
+
+
+def test_a_plan_is_held_to_a_slide_only_near_the_place_it_happened():
+    """Through the calibration: predictions made at s = 53 m that missed by 9 deg hold a plan made there,
+    not one made at s = 10 m (nor one with no place)."""
+    cal = SpreadCalibration(horizon=1)
+    for k in range(300):
+        s_m = 0.1 * k
+        cal.predict(k, [Prediction(1, 0.0, 0.0, 0.01, 0.01, 1.0, s_m=s_m, v_mps=1.0,
+                                   model_sigma_lat_m=0.01, model_sigma_head_rad=0.01)])
+        cal.realize(k + 1, 0.0, 0.01 * rng_jitter(k), 0.0, 0.0)
+    for k in range(300, 310):
+        cal.predict(k, [Prediction(1, 0.0, 0.0, 0.01, 0.01, 1.0, s_m=53.0, v_mps=0.4,
+                                   model_sigma_lat_m=0.01, model_sigma_head_rad=0.01)])
+        cal.realize(k + 1, 0.0, math.radians(9.0), 0.0, 0.0)
+    slide = MARGIN * (math.radians(9.0) ** 2 / 9.0 - 0.01 ** 2)
+    assert cal.floors_by_speed(53.0, 1.0).at(1.0).added[0, 1] == pytest.approx(slide, rel=1e-5)
+    assert cal.floors_by_speed(10.0, 1.0).at(1.0).added[0, 1] < 0.01 * slide
+    assert cal.floors_by_speed(None).at(1.0).added[0, 1] == pytest.approx(slide, rel=1e-5)
+
+
+def rng_jitter(k: int) -> float:
+    return math.sin(1.7 * k)
