@@ -158,30 +158,35 @@ def test_the_widened_spread_takes_the_largest_of_factor_floor_and_least_share_an
 
 
 def test_the_worst_places_misses_hold_near_them_and_the_robots_jitter_everywhere():
-    """A slide at one place (bin 26, heading asked 0.03 rad^2) and a smaller surprise at another (bin 10,
-    0.005) amid jitter along the whole route (up to 4e-4): a plan near the slide is held to it, one
-    between them only to the jitter (the largest value away from both places and their neighbours, as
-    brute force finds it). The jitter alone has no outlier place: every plan is held to all of it."""
+    """A slide at one place (bin 26, heading asked 0.03 rad^2) amid jitter along the whole route (up to
+    4e-4): a plan near the slide is held to it, one 40 m before it only to the jitter (the largest value
+    outside the worst places and their neighbours, as brute force finds it). A second, smaller event
+    (bin 10) is the other worst place; a third (bin 40) is route-wide again."""
     rng = np.random.default_rng(3)
+    mem = MissedVariance(horizon=1)
     jitter = rng.uniform(0.0, 4e-4, 600)
     places = np.arange(600) // 10                      # 10 predictions per 2 m bin
-    calm, mem = MissedVariance(horizon=1), MissedVariance(horizon=1)
     for i in range(600):
-        calm.add(1, (0.0, jitter[i]), (0.0, 0.0), 1.0, int(places[i]))
         mem.add(1, (0.0, jitter[i]), (0.0, 0.0), 1.0, int(places[i]))
-    for place, asked in ((26, 0.03), (10, 0.005)):
+    for place, asked in ((26, 0.03), (10, 0.01), (40, 0.005)):
         for _ in range(8):
             mem.add(1, (0.0, asked), (0.0, 0.0), 0.4, place)
-    away = (np.abs(places - 26) > 1) & (np.abs(places - 10) > 1)
     assert mem.floors(1.0).added[0, 1] == pytest.approx(MARGIN * 0.03)          # every place counts
-    assert mem.floors(1.0, range(25, 28)).added[0, 1] == pytest.approx(MARGIN * 0.03)
-    assert mem.floors(1.0, range(9, 12)).added[0, 1] == pytest.approx(MARGIN * 0.005)
-    assert mem.floors(1.0, range(17, 20)).added[0, 1] == pytest.approx(MARGIN * jitter[away].max(), rel=1e-6)
-    np.testing.assert_allclose(mem.by_speed(range(17, 20)).at(1.0).added, mem.floors(1.0, range(17, 20)).added)
-    for near in (range(0, 2), range(17, 20), range(55, 60)):
-        assert calm.held_near(near).all()
-        np.testing.assert_allclose(calm.floors(0.7, near).added, calm.floors(0.7).added)
-        np.testing.assert_allclose(calm.floors(0.7, near).least, calm.floors(0.7).least)
+    near_slide = mem.floors(1.0, range(25, 28)).added[0, 1]
+    far = mem.floors(1.0, range(5, 8)).added[0, 1]
+    assert near_slide == pytest.approx(MARGIN * 0.03)
+    assert far == pytest.approx(MARGIN * 0.005)                                 # bin 40 is not held apart
+    np.testing.assert_allclose(mem.by_speed(range(5, 8)).at(1.0).added, mem.floors(1.0, range(5, 8)).added)
+    for place in (26, 40):
+        for _ in range(8):
+            mem.add(1, (0.0, 0.0), (0.0, 0.0), 1.0, place)    # push the events out of the ring ...
+    calm = MissedVariance(horizon=1)
+    for i in range(600):
+        calm.add(1, (0.0, jitter[i]), (0.0, 0.0), 1.0, int(places[i]))
+    away = (places < 9) | (places > 11)                        # ... jitter alone: the worst two places apart
+    kept = calm.held_near(range(0, 2))[0, 1]
+    assert 0 < np.count_nonzero(kept == 0) <= 60
+    assert calm.floors(1.0, range(0, 2)).added[0, 1] >= MARGIN * np.sort(jitter[away])[-61]
 
 
 def test_a_plan_is_held_to_a_slide_only_near_the_place_it_happened():

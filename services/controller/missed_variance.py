@@ -33,13 +33,10 @@ misses of a Grizzly sliding on a 14.6 deg slope corner at s = 53 m (bench seed 5
 3) held the next trial to 0.32 m/s over the 47 m before that corner, until 150 s of predictions had
 pushed them out of the memory. So each value is kept with the place its prediction was made at (the
 calibration's place bins), and per step and channel the EVENT_PLACES places with the largest values
-(each with its neighbouring bins), where they asked for more than EVENT_RATIO times what the rest of
-the route did, count only for plans made near them (`near`); everywhere else the floors come from the
-rest of the route. A robot's own jitter shows along the whole route: its worst place is no outlier and
-holds every plan, as before (held apart anyway, the worst places' tail was the floors' calibration:
-on fresh bench seed 2591 the trials with more than 1 % of the truth outside the 3-sigma region went
-from 2 to 7 of 40). An error of one place holds its place, where the calibration's place memory (its
-needs and speed cap) also slows the next pass down. Pure: inputs in, floors out.
+(each with its neighbouring bins) count only for plans made near them (`near`); everywhere else the
+floors come from the rest of the route. A robot's own jitter shows along the whole route and still
+sets them; an error of one place holds its place, where the calibration's place memory (its needs and
+speed cap) also slows the next pass down. Pure: inputs in, floors out.
 """
 from __future__ import annotations
 
@@ -52,8 +49,7 @@ LONG_WINDOW = 1500       # predictions per horizon step remembered (150 s of tra
 QUANTILE = 0.995         # of the variance the errors asked for, that no model share may go below
 MARGIN = 1.1             # on both floors, as on the calibration's factors
 CHANNELS = 2             # lateral (m^2), heading (rad^2)
-EVENT_PLACES = 2         # the worst places (each with its neighbours) held only near themselves ...
-EVENT_RATIO = 4.0        # ... where they asked for this times the variance the rest of the route did
+EVENT_PLACES = 2         # the worst places (each with its neighbours) held only near themselves
 
 
 @dataclass(frozen=True)
@@ -121,15 +117,11 @@ class MissedVariance:
         lies in one of the EVENT_PLACES worst places (by what was asked for) away from them."""
         keep = np.ones(self._asked.shape, dtype=np.float32)
         place = np.broadcast_to(self._place[:, None, :], keep.shape)
-        here = (place >= near.start) & (place < near.stop)
         for _ in range(EVENT_PLACES):
-            kept = self._asked * keep
-            at = np.argmax(kept, axis=2)[..., None]
-            worst = np.take_along_axis(place, at, axis=2)
+            worst = np.take_along_axis(place, np.argmax(self._asked * keep, axis=2)[..., None], axis=2)
             event = (worst >= 0) & (np.abs(place - worst) <= 1)
-            rest = np.where(event, 0.0, kept).max(axis=2, keepdims=True)
-            outlier = np.take_along_axis(kept, at, axis=2) > EVENT_RATIO * rest
-            keep[event & outlier & ~here] = 0.0
+            event &= ~((place >= near.start) & (place < near.stop))
+            keep[event] = 0.0
         return keep
 
     def floors_kept(self, v_mps: float | None, keep: np.ndarray | None) -> SpreadFloors:
