@@ -189,12 +189,9 @@ class SpreadCalibration:
         least that share may be, for a plan at `v_mps` (missed_variance.py; None: at any speed)."""
         return self.missed.floors(v_mps)
 
-    def floors_by_speed(self, s_m: float | None = None, v_mps: float = 0.0) -> FloorsBySpeed:
-        """The same as a function of the plan's speed, for this control step's plans made at route
-        distance `s_m` at speed `v_mps` (the worst places' values held near them: missed_variance.py;
-        None: every place counts)."""
-        near = self._near(s_m, v_mps) if s_m is not None and math.isfinite(s_m) else None
-        return self.missed.by_speed(near)
+    def floors_by_speed(self) -> FloorsBySpeed:
+        """The same as a function of the plan's speed, for this control step."""
+        return self.missed.by_speed()
 
     def beyond_at(self, s_m: float | None, v_mps: float = 0.0) -> Beyond:
         """For a plan made at route distance `s_m` at speed `v_mps`: from which speed it outruns what the
@@ -256,8 +253,7 @@ class SpreadCalibration:
             head = _Channel(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale, p.model_sigma_head_rad)
             need = max(lat.need, head.need)
             out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
-            self.missed.add(p.step, (lat.asked, head.asked), (lat.share, head.share), p.v_mps,
-                            math.floor(p.s_m / PLACE_BIN_M) if math.isfinite(p.s_m) else -1)
+            self.missed.add(p.step, (lat.asked, head.asked), (lat.share, head.share), p.v_mps)
             self._remember(p, need)
         return out
 

@@ -26,17 +26,7 @@ drive whose jitter grows with its speed, miss more the faster the robot goes; he
 speed, one surprise at 2.3 m/s put 3.6 deg of heading sigma on every plan of the next 150 s, a crawl's
 included, so that slowing down could never make a plan fit (bench seed 1709, Grizzly s968909746). A
 robot whose jitter does not fade with speed is held to it again by its slower predictions' own misses
-(and meanwhile by the recent window's factors).
-
-By place: a slide in one corner is not the robot's jitter. Held along the whole route, the 9 deg heading
-misses of a Grizzly sliding on a 14.6 deg slope corner at s = 53 m (bench seed 5417, s157964274, trial
-3) held the next trial to 0.32 m/s over the 47 m before that corner, until 150 s of predictions had
-pushed them out of the memory. So each value is kept with the place its prediction was made at (the
-calibration's place bins), and per step and channel the EVENT_PLACES places with the largest values
-(each with its neighbouring bins) count only for plans made near them (`near`); everywhere else the
-floors come from the rest of the route. A robot's own jitter shows along the whole route and still
-sets them; an error of one place holds its place, where the calibration's place memory (its needs and
-speed cap) also slows the next pass down. Pure: inputs in, floors out.
+(and meanwhile by the recent window's factors). Pure: inputs in, floors out.
 """
 from __future__ import annotations
 
@@ -49,7 +39,6 @@ LONG_WINDOW = 1500       # predictions per horizon step remembered (150 s of tra
 QUANTILE = 0.995         # of the variance the errors asked for, that no model share may go below
 MARGIN = 1.1             # on both floors, as on the calibration's factors
 CHANNELS = 2             # lateral (m^2), heading (rad^2)
-EVENT_PLACES = 2         # the worst places (each with its neighbours) held only near themselves
 
 
 @dataclass(frozen=True)
@@ -73,7 +62,6 @@ class MissedVariance:
         self._asked = np.zeros((horizon, CHANNELS, size), dtype=np.float32)
         self._missed = np.zeros((horizon, CHANNELS, size), dtype=np.float32)
         self._speed = np.zeros((horizon, size), dtype=np.float32)
-        self._place = np.full((horizon, size), -1, dtype=np.int32)   # place bin made at (-1: none)
         self._count = np.zeros(horizon, dtype=int)     # values pushed per step, ever
 
     def copy(self) -> "MissedVariance":
@@ -82,19 +70,16 @@ class MissedVariance:
         out = MissedVariance(0, self.size)
         out._asked, out._missed = self._asked.copy(), self._missed.copy()
         out._speed, out._count = self._speed.copy(), self._count.copy()
-        out._place = self._place.copy()
         return out
 
     @property
     def horizon(self) -> int:
         return len(self._count)
 
-    def add(self, step: int, asked: tuple[float, float], share: tuple[float, float], v_mps: float = 0.0,
-            place: int = -1) -> None:
-        """A realized prediction of horizon step `step` (1..K), made while commanding `v_mps` at place bin
-        `place` (-1: none): per channel, the model variance its error asked for (the 3-sigma boundary
-        through it, the estimate's and the localizer's variance taken off) and the model's share it was
-        predicted with."""
+    def add(self, step: int, asked: tuple[float, float], share: tuple[float, float], v_mps: float = 0.0) -> None:
+        """A realized prediction of horizon step `step` (1..K), made while commanding `v_mps`: per
+        channel, the model variance its error asked for (the 3-sigma boundary through it, the estimate's
+        and the localizer's variance taken off) and the model's share it was predicted with."""
         if not 1 <= step <= self.horizon:
             return
         j = step - 1
@@ -103,32 +88,12 @@ class MissedVariance:
         self._asked[j, :, i] = a
         self._missed[j, :, i] = np.maximum(a - np.asarray(share, dtype=float), 0.0)
         self._speed[j, i] = abs(v_mps) if math.isfinite(v_mps) else 0.0
-        self._place[j, i] = place
         self._count[j] += 1
 
-    def floors(self, v_mps: float | None = None, near: range | None = None) -> SpreadFloors:
+    def floors(self, v_mps: float | None = None) -> SpreadFloors:
         """MARGIN times the most missed (added to the share) and the asked-for QUANTILE (the least share),
-        for a plan at `v_mps` (module docstring; None: every prediction in full, whatever its speed)
-        made near the place bins `near` (None: every place counts)."""
-        return self.floors_kept(v_mps, None if near is None else self.held_near(near))
-
-    def held_near(self, near: range) -> np.ndarray:
-        """(K, CHANNELS, size) 1 where a value counts for a plan near the place bins `near`, 0 where it
-        lies in one of the EVENT_PLACES worst places (by what was asked for) away from them."""
-        keep = np.ones(self._asked.shape, dtype=np.float32)
-        place = np.broadcast_to(self._place[:, None, :], keep.shape)
-        for _ in range(EVENT_PLACES):
-            worst = np.take_along_axis(place, np.argmax(self._asked * keep, axis=2)[..., None], axis=2)
-            event = (worst >= 0) & (np.abs(place - worst) <= 1)
-            event &= ~((place >= near.start) & (place < near.stop))
-            keep[event] = 0.0
-        return keep
-
-    def floors_kept(self, v_mps: float | None, keep: np.ndarray | None) -> SpreadFloors:
-        """The floors of the values `keep` (held_near; None: all) holds."""
+        for a plan at `v_mps` (module docstring; None: every prediction in full, whatever its speed)."""
         asked, missed = self._asked, self._missed
-        if keep is not None:
-            asked, missed = asked * keep, missed * keep
         if v_mps is not None:
             w = speed_weights(self._speed, v_mps)[:, None, :]
             asked, missed = asked * w, missed * w
@@ -142,10 +107,10 @@ class MissedVariance:
     def any(self) -> bool:
         return bool(self._asked.any())     # what was missed is at most what was asked for
 
-    def by_speed(self, near: range | None = None) -> "FloorsBySpeed":
-        """This memory's floors as a function of the plan's speed, for one control step whose plans are
-        made near the place bins `near` (a view: valid until the next `add`)."""
-        return FloorsBySpeed(self, None if near is None or not self.any() else self.held_near(near))
+    def by_speed(self) -> "FloorsBySpeed":
+        """This memory's floors as a function of the plan's speed, for one control step (a view: valid
+        until the next `add`)."""
+        return FloorsBySpeed(self)
 
 
 def speed_weights(v_then: np.ndarray, v_mps: float) -> np.ndarray:
@@ -163,9 +128,8 @@ class FloorsBySpeed:
     """One control step's floors as a function of the plan's speed (MissedVariance.floors), memoized:
     the speed ladder asks for each rung it tries."""
 
-    def __init__(self, memory: MissedVariance, keep: np.ndarray | None = None):
+    def __init__(self, memory: MissedVariance):
         self._memory = memory
-        self._keep = keep
         self._at: dict[float, SpreadFloors] = {}
 
     def any(self) -> bool:
@@ -174,5 +138,5 @@ class FloorsBySpeed:
     def at(self, v_mps: float) -> SpreadFloors:
         v = float(v_mps)
         if v not in self._at:
-            self._at[v] = self._memory.floors_kept(v, self._keep)
+            self._at[v] = self._memory.floors(v)
         return self._at[v]
