@@ -8,7 +8,7 @@ import pytest
 
 from common.path import Path
 from services.controller.calibration import (GROWTH, MARGIN, PLACE_BIN_M, WINDOW, Prediction, SpreadCalibration,
-                                             teach_places, teach_speeds, tick_correlation)
+                                             teach_places, teach_speeds)
 from services.controller.horizon_covariance import HorizonCovariance
 from services.controller.uncertainty import propagate, route_sigmas
 
@@ -327,41 +327,3 @@ def test_the_teach_passs_steering_margin_caps_trial_1_where_it_took_most_of_it()
         cal.observe(float(s), 0.1)
     drive_pass(cal, lambda s: 0.0)
     assert cal.continued().speed_cap_at(41.0).what == "corridor"
-
-
-def test_the_correlation_of_a_wandering_error_is_read_off_its_two_covariances():
-    a = math.exp(-0.1)                      # a 1 s Gauss-Markov wander sampled at 10 Hz
-    assert tick_correlation(4e-6, 2.0 * (1.0 - a) * 4e-6) == pytest.approx(a)
-    assert tick_correlation(4e-6, 8e-6) == 0.0          # independent from tick to tick
-    assert tick_correlation(0.0, 1e-6) == 0.0 and tick_correlation(4e-6, math.inf) == 0.0
-
-
-class _Recorded(SpreadCalibration):
-    """A calibration that keeps what each check was given (the core's side of the check)."""
-    def __init__(self):
-        super().__init__(horizon=1)
-        self.decays = []
-
-    def realize(self, tick, lateral_m, heading_rad, var_lat_m2, var_head_rad2, jumped=None, decay=(0.0, 0.0)):
-        self.decays.append(decay)
-        return super().realize(tick, lateral_m, heading_rad, var_lat_m2, var_head_rad2, jumped, decay)
-
-
-def test_the_core_checks_with_the_correlation_the_localizer_says_its_error_has():
-    """The pose localizer's covariances (a 1 s wander of 1 cm and 0.3 deg at 10 Hz, no jitter) give the
-    check a per-tick correlation of exp(-0.1) in both channels; a source that does not know the change's
-    covariance (vision) gives none."""
-    import dataclasses
-    from services.controller.core import ControllerCore
-    from services.controller.tracker import PathTracker
-    from tests.test_tracker import LIMITS, PATH, StopsAt, loc
-    a, h2 = math.exp(-0.1), math.radians(0.3) ** 2
-    step = (2 * (1 - a) * 1e-4, 0, 0, 0, 2 * (1 - a) * 1e-4, 0, 0, 0, 2 * (1 - a) * h2)
-    for cov_step, expected in ((step, (a, a)), (None, (0.0, 0.0))):
-        cal = _Recorded()
-        core = ControllerCore(PATH, PathTracker(PATH, StopsAt(math.inf), LIMITS, speed_mps=0.5), 0.1, calibration=cal)
-        for k in range(3):
-            est = loc(0.1 * k, x=1.0 + 0.05 * k, y=0.0)
-            core.step(0.1 * k, k, dataclasses.replace(est, cov_T_vertex_robot=(1e-4, 0, 0, 0, 1e-4, 0, 0, 0, h2),
-                                                      cov_step_T_vertex_robot=cov_step))
-        assert cal.decays and all(d == pytest.approx(expected) for d in cal.decays)

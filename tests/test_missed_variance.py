@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from services.controller.calibration import WINDOW, Prediction, SpreadCalibration, tick_correlation
+from services.controller.calibration import WINDOW, Prediction, SpreadCalibration
 from services.controller.horizon_covariance import HorizonCovariance
 from services.controller.missed_variance import LONG_WINDOW, MARGIN, MissedVariance, SpreadFloors
 
@@ -155,32 +155,3 @@ def test_the_widened_spread_takes_the_largest_of_factor_floor_and_least_share_an
         fd = (cov.widened(up, loc)[i, 1] - cov.widened(down, loc)[i, 1]) / (2 * h)
         assert analytic[i, i] == pytest.approx(fd, rel=1e-5, abs=1e-9)
     assert analytic[3, 3] == 0.0                         # at the least share the spread does not follow the model's
-
-
-def test_the_floors_hold_what_the_truth_asked_for_behind_a_slowly_wandering_estimate():
-    """Heading predictions 1 s ahead by a calibrated model, started from an estimate whose error wanders
-    (Gauss-Markov, 1 s, as the pose localizer's): the plan carries the start's error, the check sees the
-    end's, and the two are correlated (0.37). The least share the floors keep is, before MARGIN, the
-    0.995-quantile of what the truth's errors asked for (brute force from the truth); taken as
-    independent, the estimate's error is taken off twice over and the floor is a fraction of it."""
-    def floors_and_truth(correlated: bool, seed: int, n: int = 1500, lag: int = 10, sigma: float = 0.005,
-                         model: float = 0.005) -> tuple[float, float]:
-        rng, a = np.random.default_rng(seed), math.exp(-0.1)
-        e = np.zeros(n + lag)
-        for t in range(1, n + lag):
-            e[t] = a * e[t - 1] + math.sqrt(1.0 - a * a) * sigma * rng.standard_normal()
-        w = model * rng.standard_normal(n)                       # the model's real error, as it claims
-        decay = (0.0, tick_correlation(sigma ** 2, 2.0 * (1.0 - a) * sigma ** 2) if correlated else 0.0)
-        cal, spread = SpreadCalibration(horizon=1), math.hypot(sigma, model)
-        for k in range(n):
-            cal.predict(k + lag - 1, [Prediction(1, 0.0, e[k], 1.0, spread, 1.0, 0.0, sigma, model_sigma_lat_m=1.0,
-                                                 model_sigma_head_rad=spread, from_tick=k)])
-            cal.realize(k + lag, 0.0, w[k] + e[k + lag], 0.0, sigma ** 2, None, decay)
-        truth = np.maximum(np.square(w - e[:n]) / 9.0 - sigma ** 2, 0.0)
-        return cal.floors().least[0, 1] / MARGIN, float(np.quantile(truth, 0.995, method="higher"))
-
-    seeds = range(6)
-    with_corr = np.array([floors_and_truth(True, s) for s in seeds]).sum(axis=0)
-    independent = np.array([floors_and_truth(False, s) for s in seeds]).sum(axis=0)
-    assert 0.7 < with_corr[0] / with_corr[1] < 1.5
-    assert independent[0] / independent[1] < 0.4

@@ -50,16 +50,7 @@ Rare errors and a model that changes between trials are what the recent window a
 hold: each realized prediction also tells, in m^2 and rad^2, the variance its error asked for and what
 it missed beyond the model's own share, which missed_variance.py remembers per step and channel, with
 the speed it was made at, over a longer window, across trials, as floors under every later prediction's
-model share at that speed or faster (`floors`), whatever the ratio factors say. What the floors keep is
-the truth's share: a localizer's error wanders slowly (relocalizing against the same keyframes), so its
-error at the plan's start, which the prediction carries, and its error one horizon later are
-correlated (rho = a^lag, a per capture tick from the localizer's covariances of the error and of its
-change: tick_correlation), and their difference holds less of it than two independent errors would.
-Taken as independent, the check took 2 rho sigma_estimate^2 too much off (a 0.3 deg, 1 s heading
-wander over a 1 s horizon: a third of a Husky's model share), and the truth left the predicted
-3-sigma region in 1.3-2.3 % of the steps of trials the check held. The ratio needs keep the
-independent form: divided by a crawl's tiny model share, the added term would be a large factor
-(tried: the indoor example's first trial crawled at 0.12 m/s into its time limit).
+model share at that speed or faster (`floors`), whatever the ratio factors say.
 
 What a pass met at a place holds near the speed it drove there: a calm pass at 1.4 m/s says nothing of
 2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
@@ -248,26 +239,21 @@ class SpreadCalibration:
             del self._pending[old]
 
     def realize(self, tick: int, lateral_m: float, heading_rad: float, var_lat_m2: float,
-                var_head_rad2: float, jumped: Callable[[int], float] | None = None,
-                decay: tuple[float, float] = (0.0, 0.0)) -> list[float]:
+                var_head_rad2: float, jumped: Callable[[int], float] | None = None) -> list[float]:
         """The route errors of the estimate captured at `tick` and its variances across the route and in
         heading: |z| of every prediction made for it. `jumped(c0)`: how far the estimate stepped sideways
-        without the robot since capture tick c0 (estimate_jumps.py), taken off the lateral error. `decay`:
-        the correlation of the estimate's error from one capture tick to the next, lateral and heading
-        (tick_correlation; 0: independent), for what the floors remember."""
+        without the robot since capture tick c0 (estimate_jumps.py), taken off the lateral error."""
         out = []
         for p in self._pending.pop(tick, []):
             d = lateral_m - p.lateral_m - (jumped(p.from_tick) if jumped is not None and p.from_tick >= 0 else 0.0)
             h = math.remainder(heading_rad - p.heading_rad, 2 * math.pi)
             z_lat = d / math.sqrt(p.sigma_lat_m ** 2 + var_lat_m2 + 1e-12)
             z_head = h / math.sqrt(p.sigma_head_rad ** 2 + var_head_rad2 + 1e-12)
-            rho = [a ** (tick - p.from_tick) if p.from_tick >= 0 and a > 0.0 else 0.0 for a in decay]
-            lat = _Channel(d, var_lat_m2, p.loc_sigma_lat_m, p.sigma_lat_m, p.scale, p.model_sigma_lat_m, rho[0])
-            head = _Channel(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale, p.model_sigma_head_rad,
-                            rho[1])
+            lat = _Channel(d, var_lat_m2, p.loc_sigma_lat_m, p.sigma_lat_m, p.scale, p.model_sigma_lat_m)
+            head = _Channel(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale, p.model_sigma_head_rad)
             need = max(lat.need, head.need)
             out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
-            self.missed.add(p.step, (lat.asked_absolute, head.asked_absolute), (lat.share, head.share), p.v_mps)
+            self.missed.add(p.step, (lat.asked, head.asked), (lat.share, head.share), p.v_mps)
             self._remember(p, need)
         return out
 
@@ -337,15 +323,6 @@ def teach_shares(bin_m: float, shares: list[float]) -> dict[int, tuple[float, st
     return out
 
 
-def tick_correlation(var: float, var_step: float) -> float:
-    """The correlation of an estimate's error from one capture tick to the next, from its variance and
-    that of its change (a stationary error: var_step = 2 (1 - a) var), in [0, 1]. Frame-to-frame jitter
-    counts as wander, which gives the smaller correlation: less is added back."""
-    if not var > 0.0 or not math.isfinite(var_step):
-        return 0.0
-    return min(1.0, max(0.0, 1.0 - var_step / (2.0 * var)))
-
-
 def _widened(kappa: np.ndarray, worst: np.ndarray) -> np.ndarray:
     """`kappa` widened to MARGIN times a place's largest needs `worst` where they are above 1."""
     return np.minimum(MAX_SCALE, np.maximum(kappa, np.where(worst > 1.0, MARGIN * worst, 1.0)))
@@ -361,7 +338,6 @@ class _Channel:
     sigma: float
     scale: float
     sigma_model: float = math.nan
-    rho: float = 0.0          # correlation of the estimate's error here with its error at the plan's start
 
     @property
     def _loc2(self) -> float:
@@ -379,14 +355,6 @@ class _Channel:
         """The model variance that puts `err` on the 3-sigma boundary, the estimate's and the localizer's
         variance taken off (may be negative: an error inside the localizer's own spread)."""
         return self.err * self.err / 9.0 - self.var_estimate - self._loc2
-
-    @property
-    def asked_absolute(self) -> float:
-        """`asked`, plus twice what the estimate's error here shares with its error at the plan's start,
-        which the prediction carries: a slowly wandering error partly cancels in their difference, and
-        taken as independent hid what the truth asked for (module docstring). For the floors only: as a
-        ratio to the model's share, the factors would multiply it by one over a crawl's tiny share."""
-        return self.asked + 2.0 * self.rho * min(self.var_estimate, self._loc2)
 
     @property
     def need(self) -> float:

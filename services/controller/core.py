@@ -8,7 +8,7 @@ import numpy as np
 
 from common.messages import LocState
 from common.path import Path
-from services.controller.calibration import Prediction, SpreadCalibration, tick_correlation
+from services.controller.calibration import Prediction, SpreadCalibration
 from services.controller.estimate_jumps import EstimateJumps
 from services.controller.experience import ExperienceBuilder, Observation
 from services.controller.tracker import Decision, PathTracker
@@ -106,13 +106,10 @@ class ControllerCore:
         (estimate_jumps.py) once the next estimate has told whether it was one. True: this is one."""
         pose, dist, lateral, heading = self.tracker.route_errors(loc)
         self.s_m = dist
-        cov, step = self.tracker.route_cov(loc), self.tracker.route_cov(loc, step=True)
+        cov = self.tracker.route_cov(loc)
         th = float(self.path.tangent_at(dist))
         n = np.array([-math.sin(th), math.cos(th)])
-        var = (float(n @ cov[:2, :2] @ n), float(cov[2, 2]))
-        decay = (0.0, 0.0) if step is None else \
-            (tick_correlation(var[0], float(n @ step[:2, :2] @ n)), tick_correlation(var[1], float(step[2, 2])))
-        check = (loc.capture_tick, lateral, heading, *var, decay)
+        check = (loc.capture_tick, lateral, heading, float(n @ cov[:2, :2] @ n), float(cov[2, 2]))
         if self.tracker.corridor is not None:
             self.calibration.observe(dist, self.tracker.corridor.share(dist, lateral, heading))
         kappa = float(np.interp(dist, self.path.s, self.path.curvature))
@@ -124,10 +121,9 @@ class ControllerCore:
             self._check(*check)
         return candidate
 
-    def _check(self, tick: int, lateral: float, heading: float, var_lat: float, var_head: float,
-               decay: tuple[float, float]) -> None:
+    def _check(self, tick: int, lateral: float, heading: float, var_lat: float, var_head: float) -> None:
         self.calibration.realize(tick, lateral, heading, var_lat, var_head,
-                                 lambda from_tick: self.jumps.offset_between(from_tick, tick), decay)
+                                 lambda from_tick: self.jumps.offset_between(from_tick, tick))
 
     def keep_prediction(self, tick: int, d: Decision) -> None:
         """After the command is out: the law's predicted poses x_1..x_K (of ticks tick + 1..K) with their

@@ -342,13 +342,9 @@ class PathTracker:
             return (self._fallback.angular(ctx),
                     f"{self.law.name} failed ({type(exc).__name__}: {exc}); feedback linearization this step")
 
-    def route_cov(self, loc: LocState, step: bool = False) -> np.ndarray | None:
-        """The estimate's covariance (`step`: that of its error's change from the previous capture tick;
-        None where the source does not know it) turned from the vertex frame into the route's frame."""
-        raw = loc.cov_step_T_vertex_robot if step else loc.cov_T_vertex_robot
-        if raw is None:
-            return None
-        cov = np.asarray(raw, dtype=float).reshape(3, 3)
+    def route_cov(self, loc: LocState) -> np.ndarray:
+        """The estimate's covariance turned from the vertex frame into the route's frame."""
+        cov = np.asarray(loc.cov_T_vertex_robot, dtype=float).reshape(3, 3)
         th = float(self.path.poses[loc.vertex, 2])
         R = np.array([[math.cos(th), -math.sin(th), 0.0], [math.sin(th), math.cos(th), 0.0], [0.0, 0.0, 1.0]])
         return R @ cov @ R.T
