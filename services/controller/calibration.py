@@ -50,7 +50,10 @@ Rare errors and a model that changes between trials are what the recent window a
 hold: each realized prediction also tells, in m^2 and rad^2, the variance its error asked for and what
 it missed beyond the model's own share, which missed_variance.py remembers per step and channel, with
 the speed it was made at, over a longer window, across trials, as floors under every later prediction's
-model share at that speed or faster (`floors`), whatever the ratio factors say.
+model share at that speed or faster (`floors`), whatever the ratio factors say. In heading the variance
+asked for there is the truth's (`_Channel.asked_followed`): the next plans steer the estimate onto the
+plan, so the robot's true heading wanders with the estimate's error, and the estimate's 1 s errors vary
+less than the truth's where the check's independent form assumed more (docs/results.md, stop 70).
 
 What a pass met at a place holds near the speed it drove there: a calm pass at 1.4 m/s says nothing of
 2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
@@ -253,7 +256,7 @@ class SpreadCalibration:
             head = _Channel(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale, p.model_sigma_head_rad)
             need = max(lat.need, head.need)
             out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
-            self.missed.add(p.step, (lat.asked, head.asked), (lat.share, head.share), p.v_mps)
+            self.missed.add(p.step, (lat.asked, head.asked_followed), (lat.share, head.share), p.v_mps)
             self._remember(p, need)
         return out
 
@@ -355,6 +358,15 @@ class _Channel:
         """The model variance that puts `err` on the 3-sigma boundary, the estimate's and the localizer's
         variance taken off (may be negative: an error inside the localizer's own spread)."""
         return self.err * self.err / 9.0 - self.var_estimate - self._loc2
+
+    @property
+    def asked_followed(self) -> float:
+        """`asked` where the closed loop steers its estimate onto the plan (heading): `err` is then the
+        model's own error and the robot's true one is it less the end estimate's error, independent of it,
+        so the truth's variance is err's plus the estimate's; on the 3-sigma boundary of the model's and
+        the localizer's share. Absolute, for the floors only: as a ratio to a crawl's tiny model share it
+        would hold every faster plan to the crawl's estimate noise."""
+        return self.err * self.err / 9.0 + self.var_estimate - self._loc2
 
     @property
     def need(self) -> float:
