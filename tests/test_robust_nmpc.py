@@ -879,7 +879,7 @@ def _ackermann_slowing_step(kappa_max: float = 0.3):
     """An Ackermann (steering-rate limit in the model, curvature limit in the bounds) 2 cm off a narrow
     corridor's centre at 1 m/s, warm-started by its own first step: the law slows down hard."""
     path = arc_path()
-    narrow = Corridor(path.s, 0.06, math.radians(20))
+    narrow = Corridor(path.s, 0.07, math.radians(20))     # at 0.06 m its crawl, carried on, leaves it (test_steered_out.py)
     ctx = dataclasses.replace(ctx_for(path, path.pose_at(14.0) + np.array([0.0, 0.03, 0.05]), v=1.0,
                                       corridor=narrow, prev_cmd=(1.0, 0.0)),
                               w_limit=kappa_max, w_limit_at=lambda v: min(2.0, abs(v) * kappa_max))

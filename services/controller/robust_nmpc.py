@@ -23,7 +23,9 @@ already outside it, the law stops the robot and says why. At the ladder's slowes
 where the plan's first predicted step, its lateral 3-sigma region around it, reaches beyond the corridor: no
 slower speed is left to try, and a crawl on a side slope drifts out while it corrects (bench seed 6607,
 ROC6 s2103228252: at 0.05-0.13 m/s in a corner on a 14.5 deg slope, from 0.01 to 0.19 m of a 0.172 m
-corridor).
+corridor). A robot that turns by the metre (an Ackermann) also stops at a crawl, whether the ladder or the SQP chose
+it, where the plan carried on for the lookahead distance reaches beyond it (steered_out.py): its horizon
+covers centimetres there.
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
 from services.controller.speed_ladder import SPEED_LADDER, AskedModel, Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
+from services.controller.steered_out import lateral_reach
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
 SLOWEST_REACHED = 1.25   # the drive's speed at most this times the slowest rung's for the robot to be at it
@@ -99,6 +102,14 @@ def _at_the_slowest(rung: Rung) -> bool:
     put there by one descent, and braking from speed in a corner is no safer than the plan (a Grizzly
     stopped from 1.5 m/s turned 25 deg off the route: bench seed 6607, s1583139655)."""
     return rung.scale <= SPEED_LADDER[-1] and rung.problem.start.xi0[0] <= SLOWEST_REACHED * float(np.max(rung.v))
+
+
+def _crawling(rung: Rung, base: HorizonProblem, it: Iterate) -> bool:
+    """The plan's command (whether the ladder or the SQP chose it) is no faster than the ladder's slowest
+    rung, and the drive already near that speed. Its later steps may speed up: the next step's plan is
+    made again from the crawl."""
+    top = SPEED_LADDER[-1] * float(np.max(base.v))
+    return float(it.v[0]) <= top and rung.problem.start.xi0[0] <= SLOWEST_REACHED * top
 
 
 def _estimate_sigmas(ctx: StepContext) -> tuple[float, float]:
@@ -244,7 +255,8 @@ class RCLBNMPCLaw:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
                                       sig_floor=np.minimum(rung.cov.least(rung.sig_loc)[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
-        if rung is not None and _at_the_slowest(rung) and (reason := self._leaving(nlp, result.iterate)):
+        if rung is not None and ((_at_the_slowest(rung) and (reason := self._leaving(nlp, result.iterate))) or
+                                 (_crawling(rung, base, result.iterate) and (reason := self._steered_out(nlp, result.iterate)))):
             return LawResult(0.0, v_mps=0.0, predicted=result.iterate.X[1:], stop_reason=reason,
                              uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
         return self._report(nlp, start, result, gp is not None, rung, cov, capped)
@@ -342,6 +354,24 @@ class RCLBNMPCLaw:
             return ""
         return (f"at the slowest speed the plan's next lateral error {e_lat:+.3f} m +- {a * s_lat:.3f} m "
                 f"({a:g} sigma) reaches beyond the corridor [{lo:+.2f}, {hi:+.2f}] m: stopped")
+
+    def _steered_out(self, nlp: CorridorNLP, it: Iterate) -> str:
+        """Why a robot that turns by the metre must stop at a crawl: its plan's last step carried on for the
+        lookahead distance (steered_out.py) reaches beyond the corridor with the first step's lateral
+        alpha-sigma region ("" if it does not, or the robot turns by the second). The first step's: beyond it
+        the band may be narrower than the spread (min_band_fraction), and the plan's own last step is
+        accepted so; what this adds is where the mean goes."""
+        if not nlp.problem.curvature_steered:
+            return ""
+        a, L = self.alpha, self.settings.lookahead_m
+        low, high = lateral_reach(it.E, it.X, L)
+        s_lat, lo, hi = float(it.sig[0, 1]), float(nlp.lo_lat[-1]), float(nlp.hi_lat[-1])
+        if lo <= low - a * s_lat and high + a * s_lat <= hi:
+            return ""
+        e_out = high if high + a * s_lat > hi else low
+        return (f"at a crawl the steering turns the heading error ({math.degrees(it.E[-1, 2]):+.1f} deg) back too "
+                f"slowly: the lateral error reaches {e_out:+.3f} m +- {a * s_lat:.3f} m ({a:g} sigma) within "
+                f"{L:g} m, beyond the corridor [{lo:+.2f}, {hi:+.2f}] m: stopped")
 
     def _sigma_speed_jacobian(self, problem: HorizonProblem, start: Iterate, rung: Rung, cov: HorizonCovariance,
                               A: np.ndarray) -> np.ndarray:
