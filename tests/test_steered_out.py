@@ -33,10 +33,10 @@ def test_the_reach_is_the_arc_of_the_plans_heading_change_per_metre_worked_by_ha
     x_turn = -0.05 / rho                                             # 0.5 m: closed inside the lookahead
     assert high == pytest.approx(0.10 + math.sin(0.05) * x_turn + 0.5 * rho * x_turn ** 2)
     assert high == pytest.approx(0.1125, abs=2e-4) and low == pytest.approx(0.10)
-    # opening: held, the lateral error grows in a straight line
+    # opening: the lateral error grows all the way
     E, X = _straight_plan(0.10, np.linspace(0.05, 0.059, 10), 0.01)
     low, high = lateral_reach(E, X, 1.5)
-    assert low == pytest.approx(0.10) and high == pytest.approx(0.10 + math.sin(0.059) * 1.5)
+    assert low == pytest.approx(0.10) and high == pytest.approx(0.10 + math.sin(0.059) * 1.5 + 0.5 * 0.1 * 2.25)
     # a plan that does not move: the heading error held, in a straight line
     E, X = _straight_plan(-0.05, np.full(10, -0.02), 0.0)
     assert lateral_reach(E, X, 1.0) == pytest.approx((-0.05 + math.sin(-0.02), -0.05))
