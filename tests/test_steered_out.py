@@ -58,7 +58,8 @@ def _ackermann_at_the_slowest_rung(kappa_max: float):
 def test_an_ackermann_that_cannot_turn_back_in_time_stops_at_its_slowest_speed_and_says_why():
     out, law = _ackermann_at_the_slowest_rung(0.05)
     assert law._rung == len(SPEED_LADDER) - 1
-    assert out.v_mps == 0.0 and "at a crawl the steering turns the heading error (+7.8 deg) back too slowly: the lateral error reaches +0.15" in out.stop_reason
+    assert out.v_mps == 0.0 and ("at a crawl the steering turns the heading error (+7.8 deg) back too slowly: "
+                                 "the lateral error reaches +0.15") in out.stop_reason
     assert "within 1.5 m, beyond the corridor [-0.20, +0.20] m" in out.stop_reason
     out, law = _ackermann_at_the_slowest_rung(1.0)                  # it can turn back within centimetres
     assert not out.stop_reason and out.v_mps > 0

@@ -255,8 +255,7 @@ class RCLBNMPCLaw:
             nlp = dataclasses.replace(nlp, dsig_v=self._sigma_speed_jacobian(problem, start, rung, cov, A),
                                       sig_floor=np.minimum(rung.cov.least(rung.sig_loc)[:, 1], sig[:, 1]))
         result = solve_corridor(nlp, start, self._qp_for(base.K))
-        if rung is not None and ((_at_the_slowest(rung) and (reason := self._leaving(nlp, result.iterate))) or
-                                 (_crawling(rung, base, result.iterate) and (reason := self._steered_out(nlp, result.iterate)))):
+        if rung is not None and (reason := self._crawl_stop(nlp, result.iterate, rung, base)):
             return LawResult(0.0, v_mps=0.0, predicted=result.iterate.X[1:], stop_reason=reason,
                              uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
         return self._report(nlp, start, result, gp is not None, rung, cov, capped)
@@ -343,6 +342,14 @@ class RCLBNMPCLaw:
             return ""
         return (f"predicted uncertainty no longer fits the corridor ({a:g} sigma: {a * sig0[1]:.3f} m lateral, "
                 f"{math.degrees(a * sig0[2]):.1f} deg heading): stopped")
+
+    def _crawl_stop(self, nlp: CorridorNLP, it: Iterate, rung: Rung, base: HorizonProblem) -> str:
+        """Why the robot must stop at a crawl ("" if it need not): at the ladder's slowest rung, the next
+        step's region (_leaving); at any crawl of a robot that turns by the metre, the plan carried on
+        (_steered_out)."""
+        if _at_the_slowest(rung) and (reason := self._leaving(nlp, it)):
+            return reason
+        return self._steered_out(nlp, it) if _crawling(rung, base, it) else ""
 
     def _leaving(self, nlp: CorridorNLP, it: Iterate) -> str:
         """Why the robot must stop at the slowest speed: the plan's first predicted step, with its lateral
