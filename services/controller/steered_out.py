@@ -6,9 +6,10 @@ crawl (the speed ladder's slowest rung or slower, whoever chose it) the one-seco
 centimetres, so a plan whose heading error points out of the corridor and closes too slowly (or opens)
 fits every one of its steps while the robot creeps out over the next metre (bench seed 3847, MATS
 s1840372140: in a rough corner at 0.05 m/s with the curvature at its limit, the heading error stayed at
-+2.5-3 deg and the truth crept from 0.10 to 0.18 m of a 0.172 m corridor in 10 s). So the plan's last step is carried on for the lookahead distance L, its heading
-error changing per metre as it did over the plan's second half, where the steering has got to the curvature
-the plan asks for (a curvature offset held):
++2.5-3 deg and the truth crept from 0.10 to 0.18 m of a 0.172 m corridor in 10 s). So the plan's last
+step is carried on for the lookahead distance L, its heading error changing per metre as it did over the
+plan's second half, where the steering has got to the curvature the plan asks for (a curvature offset
+held):
 
     e(x) = e_K + sin(h_K) x + rho x^2 / 2,    rho = (h_K - h_m) / (path from x_m to x_K),    0 <= x <= L
 
