@@ -43,6 +43,8 @@ noise) around its preset, the rest of every draw unchanged: robots nobody tuned 
 which under `robots` ("presets" or "perturbed").
 `sim_speedup` = simulated seconds of all repeat trials (summary.json travel_time_s; teach passes and
 fits not counted) / wall seconds of the whole benchmark (`--jobs` runs at a time).
+`unanswered_ticks`: repeat ticks the lockstep bridge stepped without their answer, over all runs (0
+unless a machine was too loaded to answer within `sim.lockstep_timeout_s`: those runs can differ).
 The last stdout line is the JSON object. Ctrl-C (or SIGTERM) stops every run cleanly, services
 included. `--trials` and `--route-m` shrink the benchmark for smoke tests only: the JSON then says
 so under `overrides`, and its figures are not the benchmark's.
@@ -110,6 +112,7 @@ class TrialResult:
     end_reason: str
     ideal_travel_s: float | None = None     # route length / the trial's speed setpoint (its mean if scheduled)
     outside_3sigma: float | None = None     # outside_3sigma_fraction (laws with a predicted spread)
+    unanswered_ticks: int = 0               # stepped by the lockstep bridge without their answer
 
     @classmethod
     def from_summary(cls, entry: dict) -> "TrialResult":
@@ -123,7 +126,8 @@ class TrialResult:
                    constraint_violations=int(entry["constraint_violations"]),
                    end_reason=str(entry.get("end_reason", "")),
                    ideal_travel_s=float(length) / float(speed) if length and speed and speed > 0 else None,
-                   outside_3sigma=None if outside is None else float(outside))
+                   outside_3sigma=None if outside is None else float(outside),
+                   unanswered_ticks=int(entry.get("unanswered_ticks") or 0))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -387,7 +391,8 @@ def bench_result(outcomes: Sequence[RunOutcome], n: int, seed: int, wall_s: floa
             result[fam.name][twin] = to_dict(family_stats([o for o in mine if o.job.twin == twin]))
     sim_s = sum(t.travel_time_s for o in outcomes for t in o.trials)
     result["sim_speedup"] = round(sim_s / wall_s, 3) if wall_s > 0 else None
-    result.update({"sim_s": round(sim_s, 1), "wall_s": round(wall_s, 1), "runs": len(outcomes)})
+    result.update({"sim_s": round(sim_s, 1), "wall_s": round(wall_s, 1), "runs": len(outcomes),
+                   "unanswered_ticks": sum(t.unanswered_ticks for o in outcomes for t in o.trials)})
     return result
 
 

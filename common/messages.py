@@ -300,12 +300,16 @@ ENDED_AT_ROUTE_END = "end of route, at rest"
 
 @dataclass(frozen=True, kw_only=True)
 class TrialEvent(Message):
+    SCHEMA_VERSION = 2    # v2: unanswered_ticks
     stamp_s: float
     trial: int
     mode: TrialMode
     event: TrialEventKind
     reason: str
     path_id: str
+    # lockstep: ticks of the trial stepped without their answer (timeout); > 0 means the run depended on
+    # the wall clock, so another run of its seed can differ
+    unanswered_ticks: int = 0
 
 
 ControlAction = Literal["prepare", "start", "stop", "ping"]

@@ -233,7 +233,9 @@ class SimSection:
     period_s: float = 0.1
     physics_substeps: int = 10
     watchdog_s: float = 0.3
-    lockstep_timeout_s: float = 2.0   # wall time to wait for a command before stepping anyway
+    # wall time to wait for a tick's answer before stepping without it: a guard against a hung service,
+    # not a deadline (a loaded machine can take seconds per step; stepping early makes the run another run)
+    lockstep_timeout_s: float = 30.0
 
     def __post_init__(self):
         if self.period_s <= 0 or self.physics_substeps < 1 or self.watchdog_s <= 0 or self.lockstep_timeout_s <= 0:

@@ -131,6 +131,7 @@ class Experiment:
         self.alive: set[str] = set()
         self.ready_timeout_s = ready_timeout_s
         self.teach_sim_s = self.teach_wall_s = 0.0
+        self.teach_unanswered_ticks = 0
         self.scheduled = False        # the trial being prepared follows the scheduler's schedule
         self.learns_feedforward = law_entry(sc.controller.algorithm).learns == "ilc"   # the controller's own
         # the controller stores the teach pass's observations as the first experiences (GP laws)
@@ -271,7 +272,10 @@ class Experiment:
                 self.progress.update(f"teach   {_bar(driven / ref_len)} {driven:6.1f}/{ref_len:.1f} m  "
                                      f"t={msg.stamp_s:7.1f} s")
             elif kind == "event" and msg.event == "ended" and msg.mode == "teach":
-                self.teach_sim_s = msg.stamp_s
+                self.teach_sim_s, self.teach_unanswered_ticks = msg.stamp_s, msg.unanswered_ticks
+                if msg.unanswered_ticks:
+                    self.progress.line(f"warning teach: the bridge stepped {msg.unanswered_ticks} ticks without the "
+                                       f"localizer's answer (sim.lockstep_timeout_s): another run can differ")
                 break
             elif kind == "alive" and not msg[1] and msg[0] in ROBOT_SERVICES:
                 raise ExperimentError(f"{msg[0]} disappeared during teach")
@@ -425,6 +429,11 @@ class Experiment:
                 finished = finished or msg.reason == ENDED_AT_ROUTE_END
                 rec.completed = finished
                 rec.end_reason = "end of route" if finished else (halt_reason or msg.reason)
+                rec.unanswered_ticks = msg.unanswered_ticks
+                if msg.unanswered_ticks:
+                    self.progress.line(f"warning trial {trial}: the bridge stepped {msg.unanswered_ticks} ticks "
+                                       f"without their answer (sim.lockstep_timeout_s): another run of this "
+                                       f"seed can differ")
                 end_stamp_s = msg.stamp_s
                 break
         self._late_truth(rec, end_stamp_s if cut_s is None else min(end_stamp_s, cut_s))
@@ -691,6 +700,7 @@ def run_experiment(scenario_path: str | FsPath, out_dir: str | FsPath, connect: 
         exp.wait_ready()
         exp.teach()
         summary["identified_model"] = to_dict(exp.nominal_model)
+        summary["teach_unanswered_ticks"] = exp.teach_unanswered_ticks
         if exp.teach_learning is not None:   # the teach pass's experiences, fitted on before trial 1
             hyper = exp.teach_learning.hyper
             summary["teach_learning"] = {"experiences_stored": exp.teach_learning.ingested,

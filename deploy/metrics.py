@@ -25,6 +25,7 @@ class TrialRecord:
     completed: bool = False
     end_reason: str = ""
     wall_s: float = 0.0
+    unanswered_ticks: int = 0       # stepped by the bridge without their answer (TrialEvent)
 
     def cut_after(self, stamp_s: float) -> None:
         """Keep only what happened up to robot time `stamp_s`: the end of a trial the runner decided at a
@@ -158,6 +159,7 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
         **_after_stop(series, t_end, t_stop, lateral_limit_m, heading_limit_rad),
         "control_steps": len(rec.stepped_status()),
         "end_reason": rec.end_reason,
+        "unanswered_ticks": rec.unanswered_ticks,
         "wall_time_s": rec.wall_s,
     }
 

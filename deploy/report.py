@@ -369,6 +369,18 @@ def _fit_notes(trials: list[dict]) -> list[str]:
     return [f"<p class=warn>{html.escape(n)}</p>" for n in notes]
 
 
+def _unanswered_notes(summary: dict) -> list[str]:
+    """A warning where the lockstep bridge stepped ticks without their answer: that run depended on the
+    wall clock (a hung or badly overloaded service), so another run of its seed can differ."""
+    counts = [("teach", summary.get("teach_unanswered_ticks") or 0)] + [
+        (f"trial {t['trial']}", t.get("unanswered_ticks") or 0) for t in summary.get("trials", [])]
+    notes = [f"{what}: {n} ticks stepped without their answer (sim.lockstep_timeout_s)" for what, n in counts if n]
+    if not notes:
+        return []
+    return [f"<p class=warn>{html.escape('; '.join(notes))}. This run depended on the wall clock; another "
+            "run of its seed can differ.</p>"]
+
+
 def _section(title: str, caption: str, png: str) -> str:
     return (f"<h2>{html.escape(title)}</h2><p class=cap>{html.escape(caption)}</p>"
             f"<img alt='{html.escape(title)}' src='data:image/png;base64,{png}'>")
@@ -397,6 +409,7 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
         _kv_table(header),
         *_learning_off_notes(trials),
         *_fit_notes(trials),
+        *_unanswered_notes(summary),
         _section("Map", "Top view, equal aspect, metres: taught route, waypoints, terrain patches (coloured by "
                  "kind) and the driven truth trajectory of the first and last trial.",
                  _plot_map(scenario, path, series)),

@@ -265,13 +265,16 @@ def test_travel_against_the_requested_speed_and_calibration_figures(tmp_path):
         job.run_dir.mkdir()
         entries = [{"trial": k, "completed": True, "max_lateral_m": 0.1, "max_heading_rad": 0.05,
                     "travel_time_s": travel, "constraint_violations": 0, "end_reason": "end of route",
-                    "route_length_m": 100.0, "speed_setpoint_mps": 2.0, "outside_3sigma_fraction": out}
+                    "route_length_m": 100.0, "speed_setpoint_mps": 2.0, "outside_3sigma_fraction": out,
+                    "unanswered_ticks": 2 * (name == "b")}
                    for k, (travel, out) in enumerate(trials, start=1)]
         (job.run_dir / "summary.json").write_text(json.dumps({"trials": entries}))
         return scenarios.read_outcome(job, 0, 10.0)
     # ideal 50 s: last trials 55 s (1.1) and 75 s (1.5), median 1.3; outside: 0.004, 0.02, 0.0, 0.012, None
     outcomes = [run("a", [(80.0, 0.004), (55.0, 0.02)]), run("b", [(90.0, 0.0), (80.0, 0.012), (75.0, None)])]
-    rc = scenarios.bench_result(outcomes, n=2, seed=1, wall_s=10.0)["rc-lb-nmpc"]
+    result = scenarios.bench_result(outcomes, n=2, seed=1, wall_s=10.0)
+    assert result["unanswered_ticks"] == 3 * 2     # b's three trials: runs that can differ
+    rc = result["rc-lb-nmpc"]
     assert [s["travel_over_ideal"] for s in rc["scenarios"]] == [pytest.approx(1.1), pytest.approx(1.5)]
     assert rc["travel_over_ideal_median"] == pytest.approx(1.3)
     assert rc["outside_3sigma_median"] == pytest.approx(0.008) and rc["outside_3sigma_max"] == pytest.approx(0.02)
@@ -299,7 +302,7 @@ def test_bench_scenarios_runs_end_to_end(tmp_path, capsys):
         assert stats["failed_scenarios"] == []
     assert result["lb-nmpc"]["learning_off"]["trials"] == 2
     assert result["lb-nmpc-scheduled"]["guard_off"]["trials"] == 2
-    assert result["sim_speedup"] > 0
+    assert result["sim_speedup"] > 0 and result["unanswered_ticks"] == 0
     # every run can be replayed: its scenario file loads and its summary is there
     names = [s["scenario"] for fam in ("lb-nmpc", "lb-nmpc-scheduled") for s in result[fam]["scenarios"]]
     names += [s["scenario"] for s in result["lb-nmpc"]["learning_off"]["scenarios"]]

@@ -5,6 +5,7 @@ import json
 import os
 import queue
 import signal
+import threading
 from pathlib import Path
 
 import msgpack
@@ -19,7 +20,7 @@ from common.codec import decode, encode
 from common.messages import BridgeStatus, ControlRequest, StoreStats, TruthPose, VelocityCommand
 from deploy.experiment import run_experiment
 from deploy.robot_logs import load_ros2_mcap, residuals
-from tests.conftest import SHORT_SCENARIO, wait_until
+from tests.conftest import SHORT_SCENARIO, Deployment, wait_until
 from tests.ros2_topics import check_standard_topics, layout_topics
 
 pytestmark = pytest.mark.integration
@@ -126,6 +127,38 @@ def test_killing_the_controller_mid_trial_stops_the_robot_within_half_a_second(d
     finally:
         sub.undeclare()
         sub2.undeclare()
+
+
+def test_a_paused_controller_is_stepped_past_after_the_lockstep_timeout_and_the_trial_counts_it(tmp_path):
+    """A controller that stops answering while alive (here: SIGSTOP, as a machine too loaded to answer in
+    time) is stepped past after `lockstep_timeout_s`, and the trial says how many ticks were: that run
+    depended on the wall clock."""
+    scenario = dict(SHORT_SCENARIO, sim={"lockstep_timeout_s": 0.3})
+    dep = Deployment(tmp_path, scenario)
+    truths: queue.Queue = queue.Queue()
+    sub = dep.session.declare_subscriber(keys.truth("r1"), lambda s: truths.put(decode(TruthPose, s.payload.to_bytes())))
+
+    def pause_once_under_way():
+        while (t := truths.get(timeout=60.0)).trial != 1 or t.v_mps < 0.3:
+            pass
+        dep.launcher.kill("controller", signal.SIGSTOP)
+        try:   # the bridge steps on without the answers: three more ticks
+            for _ in range(3):
+                truths.get(timeout=30.0)
+        finally:
+            dep.launcher.kill("controller", signal.SIGCONT)
+
+    try:
+        dep.exp.teach()
+        pauser = threading.Thread(target=pause_once_under_way)
+        pauser.start()
+        rec = dep.exp.repeat(1, 0.8)
+        pauser.join()
+        assert rec.unanswered_ticks >= 3, rec.unanswered_ticks
+        assert "ticks stepped without their answer" in dep.log("bridge")
+    finally:
+        sub.undeclare()
+        dep.close()
 
 
 GARBAGE = [b"\xc1\xc1\xc1", b"", msgpack.packb([1, 2, 3]), msgpack.packb({"v": 1, "stamp_s": float("nan")}),

@@ -98,13 +98,15 @@ def render(tmp_path, series, entries, dist=None, model=None):
 def test_report_contents(tmp_path):
     path = make_path()
     series = [make_series(path, 1), make_series(path, 2)]
-    refitted = {**entry(series[1]), "fit_note": "the heading model kept < 10% of the steering"}
-    page = render(tmp_path, series, [entry(series[0], violations=3), refitted],
+    refitted = {**entry(series[1]), "fit_note": "the heading model kept < 10% of the steering", "unanswered_ticks": 4}
+    page = render(tmp_path, series, [{**entry(series[0], violations=3), "unanswered_ticks": 0}, refitted],
                   [disturbance(1, learned=False), disturbance(2)], MODEL)
     assert "Learned disturbance" in page
     warnings = re.findall(r"<p class=warn>(.*?)</p>", page)
     assert warnings == ["The model fitted after trial 2 was refitted by the store: the heading model kept &lt; 10% of the "
-                        "steering."]
+                        "steering.",
+                        "trial 2: 4 ticks stepped without their answer (sim.lockstep_timeout_s). This run depended on "
+                        "the wall clock; another run of its seed can differ."]
     model = page[page.index("<h2>Nominal model</h2>"):page.index("<h2>Trials</h2>")]
     assert "unicycle-dt100ms-tauv370ms-tauw393ms" in model and "0.37, 0, 0.999, 0.82" in model
     assert "0.393, 0, 1, n/a" in model and "&lt;no&gt; rate limit" in model

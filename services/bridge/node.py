@@ -2,7 +2,8 @@
 
 Lockstep (default): after publishing tick k the bridge waits until the tick has been answered (the
 controller's command and its status during a repeat, the localizer's state during teach) or
-`lockstep_timeout_s` passes or the answering service's liveliness token disappears, then steps. The
+`lockstep_timeout_s` passes or the answering service's liveliness token disappears, then steps (each tick
+stepped so is counted and reported with the trial's end: that run depended on the wall clock). The
 status too, because whoever watches the run (the experiment runner, the scheduler) learns from it:
 once it is out, whatever follows from the next tick or the trial's end reaches them after it. So that a
 seed gives one run, a lockstep repeat ends at the first tick at which the controller has reported the
@@ -57,7 +58,7 @@ class BridgeService(Service):
         self.route_finished = False      # the controller has reported the end of the route (lockstep)
         self._stop_requested = False     # a stop request waits for the end of the tick (lockstep)
         self.alive: set[str] = set()
-        self._timeout_warned = False
+        self.unanswered_ticks = 0        # of this trial: stepped without their answer (lockstep)
         r = self.robot
         self.k_clock, self.k_truth, self.k_odom = keys.clock(r), keys.truth(r), keys.odom(r)
         self.k_status, self.k_event = keys.bridge_status(r), keys.trial_event(r)
@@ -118,7 +119,7 @@ class BridgeService(Service):
             if self.running:
                 return self.reply(ctl, False, "already running")
             self.running = True
-            self._timeout_warned = False
+            self.unanswered_ticks = 0
             self.node.publish(self.k_event, TrialEvent(stamp_s=self.sim.t, trial=self.trial, mode=self.mode,
                                                        event="started", reason="", path_id=self.path_id))
             return self.reply(ctl, True, f"{self.mode} trial {self.trial} started at t={self.sim.t:.2f} s")
@@ -183,13 +184,14 @@ class BridgeService(Service):
         deadline = time.monotonic() + self.cfg.clock.lockstep_timeout_s
         while self.running and not stop.is_set() and not self._answered():
             if self._answerer() not in self.alive:
+                self.unanswered_ticks += 1
                 return  # nobody to wait for: the robot's own watchdog takes over
             left = deadline - time.monotonic()
             if left <= 0:
-                if not self._timeout_warned:
-                    self.log.warning("tick %d not answered within %.1f s; stepping without it",
-                                     self.sample.tick, self.cfg.clock.lockstep_timeout_s)
-                    self._timeout_warned = True
+                if not self.unanswered_ticks:
+                    self.log.warning("tick %d not answered within %.1f s; stepping without it (this run is "
+                                     "no longer reproducible)", self.sample.tick, self.cfg.clock.lockstep_timeout_s)
+                self.unanswered_ticks += 1
                 return
             self._drain(timeout=left)
 
@@ -225,8 +227,12 @@ class BridgeService(Service):
         self.sample = self.sim.sample()
         self.latest_cmd = self._applied_cmd = None
         self.node.publish(self.k_event, TrialEvent(stamp_s=self.sim.t, trial=self.trial, mode=mode,
-                                                   event="ended", reason=reason, path_id=self.path_id))
+                                                   event="ended", reason=reason, path_id=self.path_id,
+                                                   unanswered_ticks=self.unanswered_ticks))
         self.log.info("%s trial %d ended at t=%.2f s: %s", mode, self.trial, self.sim.t, reason)
+        if self.unanswered_ticks:
+            self.log.warning("%s trial %d: %d ticks stepped without their answer", mode, self.trial,
+                             self.unanswered_ticks)
 
     def _publish_tick(self) -> None:
         s, r, trial = self.sample, self.node, self.trial
