@@ -75,11 +75,12 @@ from bench.report import run_and_print
 from bench.scenario_draw import BOUNDS, FAMILIES, ROBOTS, Bounds, draw, family_of
 from common.config import dump_toml
 from common.lifecycle import PARENT_ENV
+from common.messages import CONTROLLER_STOPPED
 from common.scenario import parse_scenario
 from common.typecheck import to_dict
 
 CHILD_STOP_S = 60.0       # a run given SIGTERM stops its services and exits well within this
-SELF_STOP = "controller stopped: "   # how deploy/experiment.py words a trial the controller ended
+SELF_STOP = f"{CONTROLLER_STOPPED}: "   # how a trial the controller ended is worded (summary.json end_reason)
 # the comparison runs per family, each under its own key in the family's figures (module docstring)
 TWINS = {"lb-nmpc": ("learning_off",), "lb-nmpc-scheduled": ("guard_off",), "ilc": ("learning_off",)}
 

@@ -296,6 +296,11 @@ TrialEventKind = Literal["started", "ended"]
 # the bridge's reason for ending a lockstep repeat once the controller reported the route finished and
 # the robot came to rest: a completed trial, whichever of that status and this event reaches a listener first
 ENDED_AT_ROUTE_END = "end of route, at rest"
+# a repeat whose controller has reported itself stopped (a safety stop) for this long, robot time, ends
+# with CONTROLLER_STOPPED and the controller's reason: the runner's rule, and in lockstep the bridge's at
+# the very tick, so that where the trial ends does not depend on when a stop request reaches the bridge
+STOPPED_ENDS_TRIAL_S = 5.0
+CONTROLLER_STOPPED = "controller stopped"
 
 
 @dataclass(frozen=True, kw_only=True)

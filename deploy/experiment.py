@@ -24,9 +24,10 @@ from common import keys
 from common.bus import open_session, query, query_one
 from common.codec import Decoder, decode, encode
 from common.config import ConfigError
-from common.messages import (ENDED_AT_ROUTE_END, ControllerStatus, ControlReply, ControlRequest, Experience,
-                             ExperienceBatch, HyperMsg, LocState, NominalModel, RouteMsg, ScheduleUpdate,
-                             SpeedSchedule, StoreStats, TrialEvent, TruthPose)
+from common.messages import (CONTROLLER_STOPPED, ENDED_AT_ROUTE_END, STOPPED_ENDS_TRIAL_S, ControllerStatus,
+                             ControlReply, ControlRequest, Experience, ExperienceBatch, HyperMsg, LocState,
+                             NominalModel, RouteMsg, ScheduleUpdate, SpeedSchedule, StoreStats, TrialEvent,
+                             TruthPose)
 from common.path import Path, RouteRecorder
 from common.typecheck import to_dict
 from common.scenario import Scenario, load_scenario
@@ -51,7 +52,6 @@ def services_of(sc: Scenario) -> tuple[str, ...]:
 
 
 READY_TIMEOUT_S = 60.0         # how long the runner waits for the services to be up
-STOPPED_ENDS_TRIAL_S = 5.0     # robot time a controller may stay stopped before the runner ends the trial
 LATE_STATUS_LOCKSTEP_S = 30.0  # wall time the runner waits for the last stepped tick's status (lockstep never drops it)
 
 
@@ -421,7 +421,7 @@ class Experiment:
                     if msg.state == "stopped" else None
                 if stopped_since is not None and msg.stamp_s - stopped_since >= STOPPED_ENDS_TRIAL_S and not stopping:
                     stopping, cut_s = True, msg.stamp_s
-                    halt_reason = f"controller stopped: {msg.reason}"
+                    halt_reason = f"{CONTROLLER_STOPPED}: {msg.reason}"
                     self.control("bridge", "stop", "repeat", trial)
             elif kind == "loc":
                 rec.loc.append(msg)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from common.gp import GaussianProcess, SEHyper
+from common.messages import CONTROLLER_STOPPED
 from common.path import Path
 from services.controller.corridor import Corridor
 from services.controller.corridor_sqp import constrained_residual
@@ -658,6 +659,11 @@ def test_rc_lb_nmpc_starting_outside_the_corridor_stops_and_says_why(tmp_path, s
     assert not trial["completed"]
     assert "outside the corridor" in trial["end_reason"], trial["end_reason"]
     assert trial["distance_m"] < 0.5
+    # the bridge ended the lockstep trial itself, at the tick the stop had lasted 5 s: not wherever the
+    # runner's stop request happened to reach it
+    ended = [ln for ln in (out / "logs" / "bridge.log").read_text().splitlines() if "repeat trial 1 ended" in ln]
+    assert len(ended) == 1 and f"{CONTROLLER_STOPPED}: " in ended[0] and "outside the corridor" in ended[0], ended
+    assert ended[0].endswith(f"s: {trial['end_reason']}"), (trial["end_reason"], ended)
 
 
 @pytest.mark.slow

@@ -7,8 +7,10 @@ stepped so is counted and reported with the trial's end: that run depended on th
 status too, because whoever watches the run (the experiment runner, the scheduler) learns from it:
 once it is out, whatever follows from the next tick or the trial's end reaches them after it. So that a
 seed gives one run, a lockstep repeat ends at the first tick at which the controller has reported the
-end of the route and the robot is at rest, and a stop request takes effect once the current tick has
-been answered, not wherever it happens to arrive. Realtime: it steps at
+end of the route and the robot is at rest, or has reported itself stopped for STOPPED_ENDS_TRIAL_S (the
+runner's rule, which it would otherwise carry out with a stop request that arrives a tick or two late),
+and a stop request takes effect once the current tick has been answered, not wherever it happens to
+arrive. Realtime: it steps at
 wall-clock pace and applies whatever command arrived last. Either way the watchdog (robot time)
 brakes the robot when commands go stale.
 """
@@ -21,8 +23,8 @@ import time
 
 from common import keys, se2
 from common.bus import Node
-from common.messages import (ENDED_AT_ROUTE_END, BridgeStatus, Clock, ControllerStatus, LocState, Odometry,
-                             TrialEvent, TruthPose, VelocityCommand)
+from common.messages import (CONTROLLER_STOPPED, ENDED_AT_ROUTE_END, STOPPED_ENDS_TRIAL_S, BridgeStatus, Clock,
+                             ControllerStatus, LocState, Odometry, TrialEvent, TruthPose, VelocityCommand)
 from common.service import Control, Service, service_main
 from services.bridge.config import BridgeConfig
 from services.bridge.render import StereoRenderer
@@ -56,6 +58,7 @@ class BridgeService(Service):
         self.latest_loc_tick = -1
         self.latest_status_tick = -1     # of the controller's statuses of this trial (lockstep)
         self.route_finished = False      # the controller has reported the end of the route (lockstep)
+        self.stopped: tuple[float, float, str] | None = None   # since, last status stamp, reason (lockstep)
         self._stop_requested = False     # a stop request waits for the end of the tick (lockstep)
         self.alive: set[str] = set()
         self.unanswered_ticks = 0        # of this trial: stepped without their answer (lockstep)
@@ -83,9 +86,11 @@ class BridgeService(Service):
             if msg.trial == self.trial:
                 self.latest_loc_tick = max(self.latest_loc_tick, msg.tick)
         elif isinstance(msg, ControllerStatus):
-            if self.mode == "repeat" and msg.trial == self.trial:
-                self.latest_status_tick = max(self.latest_status_tick, msg.tick)
+            if self.mode == "repeat" and msg.trial == self.trial and msg.tick > self.latest_status_tick:
+                self.latest_status_tick = msg.tick
                 self.route_finished = self.route_finished or msg.state == "finished"
+                since = msg.stamp_s if self.stopped is None else self.stopped[0]
+                self.stopped = (since, msg.stamp_s, msg.reason) if msg.state == "stopped" else None
 
     def on_control(self, ctl: Control) -> None:
         req = ctl.request
@@ -109,7 +114,7 @@ class BridgeService(Service):
             self.sample = self.sim.sample()
             self.latest_cmd = self._applied_cmd = None
             self.latest_loc_tick = self.latest_status_tick = -1
-            self.route_finished = False
+            self.route_finished, self.stopped = False, None
             self.deadline_s = self.sim.t + req.max_duration_s if req.max_duration_s > 0 else math.inf
             return self.reply(ctl, True, f"{req.mode} trial {req.trial} ready at "
                               f"({start[0]:.2f}, {start[1]:.2f}, {math.degrees(start[2]):.1f} deg)")
@@ -214,9 +219,13 @@ class BridgeService(Service):
         if s.stamp_s >= self.deadline_s:
             self._end_trial("time limit reached")
             return True
-        if (self.mode == "repeat" and self.cfg.clock.mode == "lockstep" and self.route_finished
-                and abs(s.v_ground) < AT_REST_MPS and abs(s.w_ground) < AT_REST_RADPS):
+        if self.mode != "repeat" or self.cfg.clock.mode != "lockstep":
+            return False
+        if self.route_finished and abs(s.v_ground) < AT_REST_MPS and abs(s.w_ground) < AT_REST_RADPS:
             self._end_trial(ENDED_AT_ROUTE_END)
+            return True
+        if self.stopped is not None and self.stopped[1] - self.stopped[0] >= STOPPED_ENDS_TRIAL_S:
+            self._end_trial(f"{CONTROLLER_STOPPED}: {self.stopped[2]}")
             return True
         return False
 
