@@ -37,7 +37,7 @@ N_VERTICES = 400
 class StoreRig:
     """Router + localizer (serves the route) + gp_store, and a client node playing a robot."""
 
-    def __init__(self, base, c_bin=4):
+    def __init__(self, base, c_bin=4, localizer=True):
         self.base = base
         RouteStore(base / "data" / "routes").save(
             Path("dur", np.column_stack([np.arange(N_VERTICES) * 0.25, np.zeros(N_VERTICES), np.zeros(N_VERTICES)])), 0.0)
@@ -49,9 +49,17 @@ class StoreRig:
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.launcher = Launcher(self.endpoint, base / "logs")
         self.launcher.start_router(self.port)
-        self.launcher.start_service("localizer", base / "loc.toml")
         self.node = Node("test", "r1", self.endpoint)
+        if localizer:
+            self.start_localizer()
         self.start_store()
+
+    def start_localizer(self):
+        """The service that answers route queries: up (its token seen) before anything asks it."""
+        self.launcher.start_service("localizer", self.base / "loc.toml")
+        up = threading.Event()
+        self.node.liveliness_subscriber(keys.alive("r1", "localizer"), lambda k, alive: alive and up.set())
+        assert up.wait(30), "localizer did not come up"
 
     def start_store(self):
         self.launcher.start_service("gp_store", self.base / "store.toml")
@@ -192,6 +200,26 @@ def test_bad_experiences_are_rejected_with_a_reason(rig):
     log = rig.log()
     assert "rejected message on lbc/r1/experience" in log and "must be finite" in log and "must hold 3 values" in log
     assert rig.launcher.exited() == []
+
+
+def test_experiences_of_a_route_no_service_answers_for_wait_for_it_instead_of_being_rejected(tmp_path):
+    """The route's service (the robot's localizer) unreachable: its experiences are neither stored nor
+    rejected but sent again, and stored once the route is served."""
+    rig = StoreRig(tmp_path, localizer=False)
+    try:
+        acks: list[ExperienceAck] = []
+        rig.node.subscribe(keys.experience_ack("r1"), ExperienceAck, lambda m, k: acks.append(m))
+        outbox = ExperienceOutbox(rig.node, "r1", resend_after_s=1.0)
+        for i in range(20):
+            outbox.add(stamp_s=0.1 * i, trial=1, path_id="dur", vertex=i, v_cmd_mps=0.5, a=[0.0] * 9, g=[0.0] * 3)
+        outbox.flush()
+        wait_until(lambda: "no service answered" in rig.log(), 30, "the store's route lookup")
+        assert acks == [] and outbox.pending == 20 and outbox.rejected == 0
+        rig.start_localizer()
+        assert outbox.wait_acked(60), f"{outbox.pending} still pending"
+        assert outbox.rejected == 0 and sum(len(a.seqs) for a in acks) >= 20
+    finally:
+        rig.close()
 
 
 def test_window_queries_out_of_range_are_answered_with_a_reason(rig):

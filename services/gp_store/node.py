@@ -1,7 +1,9 @@
 """Experience store service (thesis 5.2.2-5.3.2): the shared memory of every robot.
 
 - ingests `lbc/*/experience` batches (any robot) for the routes it serves, in group commits, and
-  acknowledges each stored seq on `lbc/<robot>/experience/ack` only after the commit;
+  acknowledges each stored seq on `lbc/<robot>/experience/ack` only after the commit; experiences of a
+  route no service answers for right now (the robot's localizer unreachable or slow) are left
+  unacknowledged, so their producer sends them again, rather than rejected and lost;
 - answers local-window queries `lbc/store/<path>/window?vertex=i&speed=v[&model=m]` (one nominal
   model's experiences, db.py; without `model`, those of the route's newest experience), the newest
   hyperparameters `hyper[?model=m]` (fitted on that model's experiences), `dump` and `stats`;
@@ -24,8 +26,8 @@ from dataclasses import dataclass, field
 import zenoh
 
 from common import keys
-from common.bus import Node, float_param, int_param, query_one, query_params
-from common.codec import DecodeError, encode
+from common.bus import Node, float_param, int_param, query, query_params
+from common.codec import DecodeError, decode, encode
 from common.lifecycle import die_with_parent
 from common.messages import (ExperienceAck, ExperienceBatch, ExperienceWindow, RouteMsg, StoreStats, TrialEvent,
                              check_name)
@@ -51,6 +53,18 @@ class _FitState:
     retained_at_fit: int = 0
 
 
+ROUTE_QUERY_S = 2.0       # how long a route lookup waits for its service
+ROUTE_RECHECK_S = 10.0    # an unknown or unanswered route is asked again after this long
+
+
+@dataclass(frozen=True)
+class _RouteLookup:
+    n: int | None             # the route's vertex count (None: no such route, or no answer)
+    answered: bool            # its service answered (False: ask again later, keep the experiences)
+    at: float                 # monotonic time of the lookup
+    reason: str = ""          # why there is no count
+
+
 class StoreService(Service):
     name = "gp_store"
 
@@ -64,7 +78,7 @@ class StoreService(Service):
         self.fits: dict[str, _FitState] = {}
         self._pool: cf.ProcessPoolExecutor | None = None
         self._ingest_q: queue.Queue[ExperienceBatch] = queue.Queue()
-        self._routes: dict[str, tuple[int | None, float]] = {}
+        self._routes: dict[str, _RouteLookup] = {}
         node.subscribe(f"{keys.ROOT}/*/experience", ExperienceBatch, lambda m, k: self._ingest_q.put(m))
         node.subscribe(f"{keys.ROOT}/*/trial/event", TrialEvent, lambda m, k: self.inbox.put(("trial", m)))
         for p in (["*"] if self.serve_all else sorted(self.paths)):
@@ -105,7 +119,10 @@ class StoreService(Service):
             for e in b.experiences:
                 if not self.serves(e.path_id):
                     continue  # another store's route
-                problem = self._check(e)
+                n, answered = self._route_vertices(e.path_id)
+                if not answered:
+                    continue  # no one to ask whether the route exists: the producer sends it again
+                problem = self._check(e, n)
                 if problem:
                     bad.append(e.seq)
                     reasons.add(problem)
@@ -124,29 +141,44 @@ class StoreService(Service):
                     stamp_s=time.time(), store=self.cfg.name, source=source, seqs=stored, rejected=bad,
                     reason="; ".join(sorted(reasons))))
 
-    def _check(self, e) -> str:
-        """Why an experience cannot be stored, or '' (field types and finiteness the codec checked)."""
-        n = self._route_vertices(e.path_id)
+    def _check(self, e, n: int | None) -> str:
+        """Why an experience cannot be stored, or '' (field types and finiteness the codec checked); `n`:
+        its route's vertex count, None where the route's service answered that it has no such route."""
         if n is None:
-            return f"unknown route {e.path_id!r}: no service serves lbc/paths/{e.path_id}"
+            return f"unknown route {e.path_id!r}: {self._routes[e.path_id].reason}"
         if e.vertex >= n:
             return f"vertex {e.vertex} beyond the {n} vertices of route {e.path_id!r}"
         if e.v_cmd_mps < 0 or e.trial < 0:
             return "negative commanded speed or trial"
         return ""
 
-    def _route_vertices(self, path_id: str) -> int | None:
-        """Vertex count of a taught route, looked up once on the bus (unknown ids rechecked after 10 s)."""
+    def _route_vertices(self, path_id: str) -> tuple[int | None, bool]:
+        """(vertex count of a taught route or None, whether its service answered at all), looked up once
+        on the bus; an unknown or unanswered id is asked again after ROUTE_RECHECK_S."""
         known = self._routes.get(path_id)
-        if known is not None and (known[0] is not None or time.monotonic() - known[1] < 10.0):
-            return known[0]
-        n = None
-        try:
-            n = len(query_one(self.node.session, keys.route(path_id), RouteMsg, timeout_s=2.0).x_m)
-        except (LookupError, DecodeError) as exc:
-            self.log.warning("route %s not found: %s", path_id, exc)
-        self._routes[path_id] = (n, time.monotonic())
-        return n
+        if known is None or (known.n is None and time.monotonic() - known.at > ROUTE_RECHECK_S):
+            known = self._routes[path_id] = self._look_up(path_id)
+        return known.n, known.answered
+
+    def _look_up(self, path_id: str) -> _RouteLookup:
+        """Every service that serves routes answers (several robots' localizers may): the route is known
+        if one holds it, unknown if all that answered do not, unanswered if none did."""
+        now = time.monotonic()
+        errors = []
+        for rep in query(self.node.session, keys.route(path_id), timeout_s=ROUTE_QUERY_S):
+            if rep.error is not None:
+                errors.append(rep.error)
+                continue
+            try:
+                return _RouteLookup(len(decode(RouteMsg, rep.payload).x_m), True, now)
+            except DecodeError as exc:
+                errors.append(f"not readable: {exc}")
+        if errors:
+            self.log.warning("route %s not found: %s", path_id, "; ".join(errors))
+            return _RouteLookup(None, True, now, "; ".join(errors))
+        self.log.warning("route %s: no service answered within %.0f s; its experiences wait for it",
+                         path_id, ROUTE_QUERY_S)
+        return _RouteLookup(None, False, now, "no service answered")
 
     # --- queries (on Zenoh's threads: short reads on the reader connection) ----------------------
     @staticmethod
