@@ -209,25 +209,29 @@ class BridgeService(Service):
             self._applied_cmd = self.latest_cmd
 
     def _trial_over(self) -> bool:
-        s = self.sample
-        if self._stop_requested:
-            self._end_trial("stopped on request")
-            return True
-        if self.mode == "teach" and self.driver is not None and self.driver.done and abs(s.v_ground) < 1e-3:
-            self._end_trial("teach complete")
-            return True
-        if s.stamp_s >= self.deadline_s:
-            self._end_trial("time limit reached")
-            return True
-        if self.mode != "repeat" or self.cfg.clock.mode != "lockstep":
+        """Ends the trial where it is over: the robot-time rules first, so that where one holds at the tick
+        a stop request also arrived for, the trial ends with its reason whatever the timing."""
+        reason = self._ended_by_rule()
+        if reason is None and self._stop_requested:
+            reason = "stopped on request"
+        if reason is None:
             return False
+        self._end_trial(reason)
+        return True
+
+    def _ended_by_rule(self) -> str | None:
+        s = self.sample
+        if self.mode == "teach" and self.driver is not None and self.driver.done and abs(s.v_ground) < 1e-3:
+            return "teach complete"
+        if s.stamp_s >= self.deadline_s:
+            return "time limit reached"
+        if self.mode != "repeat" or self.cfg.clock.mode != "lockstep":
+            return None
         if self.route_finished and abs(s.v_ground) < AT_REST_MPS and abs(s.w_ground) < AT_REST_RADPS:
-            self._end_trial(ENDED_AT_ROUTE_END)
-            return True
+            return ENDED_AT_ROUTE_END
         if self.stopped is not None and self.stopped[1] - self.stopped[0] >= STOPPED_ENDS_TRIAL_S:
-            self._end_trial(f"{CONTROLLER_STOPPED}: {self.stopped[2]}")
-            return True
-        return False
+            return f"{CONTROLLER_STOPPED}: {self.stopped[2]}"
+        return None
 
     def _end_trial(self, reason: str) -> None:
         mode, self.mode, self.running = self.mode, "idle", False   # a new trial needs a new prepare
