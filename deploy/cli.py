@@ -51,6 +51,19 @@ def _operator_session(args) -> tuple[str | None, str | dict | None]:
     return m.host(args.host).listen, conf
 
 
+def _compare(args) -> int:
+    import json
+    from deploy.compare import CompareError, compare_dirs, describe
+    try:
+        c = compare_dirs(args.a, args.b)
+    except CompareError as exc:
+        _say("experiment compare", str(exc))
+        return 2
+    print("\n".join(describe(c)))
+    print(json.dumps(c.to_json()))
+    return 0 if c.identical else 1
+
+
 def _experiment(args) -> int:
     from deploy.experiment import ExperimentError, run_experiment
     signal.signal(signal.SIGTERM, _raise_interrupt)  # SIGTERM cleans up exactly like Ctrl-C
@@ -196,8 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     exp_parser = sub.add_parser("experiment", help="run experiments")
     exp_parser.set_defaults(func=_help_of(exp_parser))
-    run = exp_parser.add_subparsers(dest="sub", metavar="SUBCOMMAND").add_parser(
-        "run", help="teach and repeat a scenario through the real services")
+    exp_sub = exp_parser.add_subparsers(dest="sub", metavar="SUBCOMMAND")
+    run = exp_sub.add_parser("run", help="teach and repeat a scenario through the real services")
     run.add_argument("scenario")
     run.add_argument("--out", required=True, help="output directory (summary.json, report.html, run.mcap)")
     run.add_argument("--connect", default=None, help="use a running deployment at this Zenoh endpoint")
@@ -213,6 +226,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--overwrite", action="store_true", help="replace an earlier run in the output directory")
     add_log_level_argument(run)
     run.set_defaults(func=_experiment)
+    compare = exp_sub.add_parser(
+        "compare", help="two runs of the same scenarios side by side: are they the same run, and where not, each "
+                        "trial's figures; exit status 0 when every pair is the same run, 1 when not (as diff)")
+    compare.add_argument("a", help="an experiment's output directory, or a directory of them (bench --out)")
+    compare.add_argument("b", help="the same for the other run(s); directories of runs pair by name")
+    compare.set_defaults(func=_compare)
 
     launch = sub.add_parser("launch", help="start router and services (a scenario, or one host of a manifest) "
                                            "until Ctrl-C")

@@ -15,6 +15,7 @@ from common import keys
 from common.bus import query_one
 from common.messages import ExperienceWindow, HyperMsg
 from common.store_client import ExperienceOutbox, WindowCache
+from deploy.compare import compare_dirs, describe
 from deploy.experiment import run_experiment
 from deploy.reproducible import TRIAL_WALL_CLOCK_KEYS, differences, reproducible_part
 from tests.conftest import wait_until
@@ -49,8 +50,8 @@ def test_two_lockstep_runs_of_one_seed_give_the_same_summary(tmp_path, scenario_
     assert len(trials) == 3 and all(t["completed"] for t in trials), trials
     assert all(t["experiences_fit_retained"] for t in trials), trials
     on_disk = [json.loads((tmp_path / d / "summary.json").read_text()) for d in ("a", "b")]
-    diff = differences(reproducible_part(on_disk[0]), reproducible_part(on_disk[1]))
-    assert not diff, "\n".join(diff + _warnings(tmp_path / "a") + _warnings(tmp_path / "b"))
+    compared = compare_dirs(tmp_path / "a", tmp_path / "b")       # what `lbc experiment compare` says
+    assert compared.identical, "\n".join(describe(compared) + _warnings(tmp_path / "a") + _warnings(tmp_path / "b"))
     assert on_disk[0] == json.loads(json.dumps(first)) and on_disk[1] == json.loads(json.dumps(second))
     # RC-LB-NMPC's prediction and its 3-sigma band as ROS 2 markers, beside the standard topics
     topics = check_standard_topics(tmp_path / "a" / "run.mcap", "husky")
