@@ -25,6 +25,7 @@ import numpy as np
 
 from services.controller.horizon import HorizonProblem, HorizonReference
 from services.controller.sqp_qp import CorridorQP
+from services.controller.turn_accel import TurnLead
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,7 @@ class CorridorNLP:
     v_max: np.ndarray         # (K,) never above the desired speeds (nor the speed cap's)
     w_limit_at: Callable[[float], float]   # |w| bound at a speed (actuator, Ackermann steering)
     sig_floor: np.ndarray | None = None    # (K,) the least lateral sigma at any speed (the localizer's share)
+    turn_lead: TurnLead | None = None      # a skid-steer's turn commands kept within its drive's acceleration
 
     def w_limits(self, v: np.ndarray) -> np.ndarray:
         v_min = self.problem.s.v_min_mps
@@ -142,8 +144,17 @@ class CorridorNLP:
         if self.sig_floor is not None:
             free &= it.sig[:, 1] > self.sig_floor
         dx, _ = qp.solve(it.r, J, it.E, dE, tight, self.alpha * self.dsig_v * free[:, None],
-                         self.lo_lat, self.hi_lat, self.head_lim, lo_d, np.maximum(hi_d, lo_d))
+                         self.lo_lat, self.hi_lat, self.head_lim, lo_d, np.maximum(hi_d, lo_d), self._lead_rows(it))
         return dx
+
+    def _lead_rows(self, it: Iterate) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(M, lo, hi) on the turn step: each command's lead over the drive within +-turn_lead.max_radps,
+        and never further beyond it than the iterate already is (so that no step is infeasible for it)."""
+        tl = self.turn_lead
+        if tl is None or self.problem.curvature_steered:
+            return None
+        g = tl.leads(it.w, self.problem.start.xi0[1])
+        return tl.matrix(len(g)), np.minimum(-tl.max_radps - g, 0.0), np.maximum(tl.max_radps - g, 0.0)
 
     def moved(self, it: Iterate, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(v, w) after the step d from `step`: a curvature-steered robot keeps the step's curvature at

@@ -257,17 +257,19 @@ class TeachRecorder:
         if loc.T_vertex_robot is not None:
             self.estimates[loc.capture_tick] = loc
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """(u, y), each (n, 2) over the ticks seen, NaN where missing."""
-        ticks = sorted(set(self.u) | set(self.y))
+    def arrays(self, until_tick: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(u, y), each (n, 2) over the ticks seen (up to `until_tick`), NaN where missing."""
+        ticks = sorted(t for t in set(self.u) | set(self.y) if until_tick is None or t <= until_tick)
         if not ticks:
             return np.zeros((0, 2)), np.zeros((0, 2))
         t0, n = ticks[0], ticks[-1] - ticks[0] + 1
         u, y = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
         for t, val in self.u.items():
-            u[t - t0] = val
+            if t0 <= t < t0 + n:
+                u[t - t0] = val
         for t, val in self.y.items():
-            y[t - t0] = val
+            if t0 <= t < t0 + n:
+                y[t - t0] = val
         return u, y
 
 

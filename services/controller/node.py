@@ -7,6 +7,7 @@ so the loop never waits on the network.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import queue
 import threading
@@ -39,6 +40,7 @@ from services.controller.registry import LawInputs, law_entry
 from services.controller.settings import NMPCSettings
 from services.controller.tracker import Decision, PathTracker, TrackerLimits
 from services.controller import turn_loss_file
+from services.controller.turn_accel import fit_turn_accel
 from services.controller.turn_speed import TurnLoss
 
 class ControllerService(Service):
@@ -79,6 +81,10 @@ class ControllerService(Service):
         self.nominal = NominalModels(r, cfg.period_s, FsPath(cfg.data_dir) / "models" if cfg.data_dir else None,
                                      lim.curvature_rate_max_per_ms, self.limits.w_limit)
         self.calibrations: dict[tuple[str, str], SpreadCalibration] = {}   # (route, model) -> the last trial's
+        # the turn drive's acceleration limit per nominal model, read off the repeats (turn_accel.py), and
+        # what the current repeat records for it
+        self.turn_accel: dict[str, float] = {}
+        self.drive_record: TeachRecorder | None = None
         node.subscribe_queue(keys.bridge_status(r), BridgeStatus, self.inbox)
         node.subscribe_queue(keys.odom(r), Odometry, self.inbox)
         node.queryable(keys.ctrl_model(r, "*"), lambda q: self.inbox.put(("q_model", q)))
@@ -134,7 +140,7 @@ class ControllerService(Service):
             schedule = np.asarray(sched.v_mps)
             note = f"on schedule v{sched.version} ({schedule.min():.2f}-{schedule.max():.2f} m/s)"
         # the route's identified model, where the configuration leaves it to identification
-        settings = self.cfg.nmpc.with_identified(self.nominal.of(req.path_id))
+        settings = self._with_turn_accel(self.cfg.nmpc.with_identified(self.nominal.of(req.path_id)))
         try:
             law, ic_vertices = self._make_law(req.path_id, path, settings)
             lag = settings.lag(self.cfg.period_s)
@@ -150,6 +156,7 @@ class ControllerService(Service):
         self.core = ControllerCore(path, tracker, self.cfg.period_s,
                                    self._calibration(req.path_id, tracker.lag.model_tag, settings.horizon))
         self.trial, self.path_id, self.latest_loc, self.speed_mps = req.trial, req.path_id, None, req.speed_mps
+        self.drive_record = None if tracker.lag.rate_limited else TeachRecorder(self.cfg.period_s)
         self.learning_off_since_s, self.learning_note = -1.0, ""
         self._use_model(tracker.lag.model_tag)
         if self.cache is not None:
@@ -158,6 +165,8 @@ class ControllerService(Service):
             if snapshot is not None:
                 self.log.info("trial %d: %s", req.trial, snapshot.describe())
         window = f", the route's heading averaged over {path.heading_window_m:.1f} m" if path.heading_window_m else ""
+        if settings.turn_accel_max_radps2 is not None:
+            window += f", the turn drive's acceleration limit {settings.turn_accel_max_radps2:.2f} rad/s^2"
         capped_m, lowest = tracker.turn_capped()
         if capped_m > 0.0:
             loss = tracker.turn_loss.per_mps2
@@ -166,6 +175,30 @@ class ControllerService(Service):
                        + (f"; turn lost to skidding {loss:.2f} per m/s^2" if loss > 0 else "") + ")")
         return self.reply(ctl, True, f"tracking {req.path_id} ({len(path)} vertices) {note} "
                           f"with {self.cfg.algorithm}, nominal model {tracker.lag.model_tag}{window}")
+
+    def _with_turn_accel(self, settings: NMPCSettings) -> NMPCSettings:
+        """The settings with the turn drive's acceleration limit the earlier repeats under the same model
+        met, where none is set by hand; with learning off, none."""
+        if settings.turn_accel_max_radps2 is not None or not self.learning:
+            return settings
+        limit = self.turn_accel.get(settings.lag(self.cfg.period_s).model_tag)
+        return settings if limit is None else dataclasses.replace(settings, turn_accel_max_radps2=limit)
+
+    def _learn_turn_accel(self, core: ControllerCore) -> str:
+        """The limit this repeat's commands and odometry show (turn_accel.py), kept for the next repeats
+        under its model. The last second is left out: its messages may still be on their way, and a seed
+        must give one run."""
+        rec, self.drive_record = self.drive_record, None
+        if rec is None or not rec.u:
+            return ""
+        u, y = rec.arrays(until_tick=max(rec.u) - round(1.0 / self.cfg.period_s))
+        lag = core.tracker.lag
+        fit = fit_turn_accel(u[:, 1], y[:, 1], self.cfg.period_s, lag.tau_w_s)
+        if fit is None:
+            return ""
+        if self.learning and math.isfinite(fit.limit_radps2):
+            self.turn_accel[lag.model_tag] = fit.limit_radps2
+        return fit.describe()
 
     def _turn_loss(self, lag: ActuatorLag) -> TurnLoss:
         """The turn loss the trial starts from (turn_speed.py): the one the earlier trials under this
@@ -226,6 +259,8 @@ class ControllerService(Service):
         if core is not None:
             self.calibrations[(self.path_id, self.model_tag)] = core.calibration
         notes = [self._learn_ilc(core)] if self.ilc is not None and core is not None else []
+        if core is not None:
+            notes.append(self._learn_turn_accel(core))
         if core is not None and core.tracker.turn_loss.samples:
             self._save_turn_loss(core)
             loss = core.tracker.turn_loss
@@ -237,7 +272,7 @@ class ControllerService(Service):
             ok = self.outbox.wait_acked(self.cfg.store.ack_timeout_s)
             notes.append(f"{self.outbox.acked} experiences acknowledged" if ok else
                          f"{self.outbox.pending} experiences not yet acknowledged by any store")
-        return self.reply(ctl, True, "; ".join(["idle"] + notes))
+        return self.reply(ctl, True, "; ".join(["idle"] + [n for n in notes if n]))
 
     def _finish_teach(self, ctl: Control) -> None:
         """Identify the nominal model on the teach pass just driven (identification.py), keep it for the
@@ -350,6 +385,13 @@ class ControllerService(Service):
             return self._serve_model(msg)
         if self.nominal.teach is not None:
             return self.nominal.record(msg)
+        if self.drive_record is not None and isinstance(msg, BridgeStatus):
+            if msg.trial == self.trial and msg.mode == "repeat" and msg.running:
+                self.drive_record.add_applied(msg.tick, msg.v_cmd_applied_mps, msg.w_cmd_applied_radps)
+            return
+        if self.drive_record is not None and isinstance(msg, Odometry):
+            self.drive_record.add_odometry(msg.tick, msg.v_mps, msg.w_radps)
+            return
         if not isinstance(msg, LocState) or self.core is None or msg.trial != self.trial:
             return
         if msg.path_id != self.path_id or msg.vertex >= len(self.core.path):

@@ -50,6 +50,7 @@ from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
 from services.controller.speed_ladder import SPEED_LADDER, AskedModel, Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
+from services.controller.turn_accel import TurnLead
 from services.controller.steered_out import lateral_reach
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
@@ -207,6 +208,8 @@ class RCLBNMPCLaw:
         self.model_at = model_at
         self.alpha = settings.alpha if alpha is None else alpha
         self.name = "rc-lb-nmpc" if self.alpha > 0 else "c-lb-nmpc"
+        tau_w = settings.actuator_tau_s[1] if settings.actuator_tau_s else 0.0
+        self.turn_lead = TurnLead.of(settings.turn_accel_max_radps2, tau_w, dt)
         self._qp: CorridorQP | None = None
         self._rung = 0                       # the speed ladder's rung of the last step
         self.last_plan: Plan | None = None
@@ -242,7 +245,7 @@ class RCLBNMPCLaw:
                                                             problem.turn_gain))
         sig = rung.sig if rung is not None else np.zeros((base.K, 3))
         nlp = CorridorNLP(problem, lo_lat, hi_lat, head_lim, cap, self.alpha, sig, np.zeros((base.K, base.K)), v,
-                          v_max, ctx.w_limit_at)
+                          v_max, ctx.w_limit_at, turn_lead=self.turn_lead)
         if rung is not None:
             nlp = dataclasses.replace(nlp, cap=reach_capped(cap, start_errors(problem), problem.effective(v)[0],
                                                             nlp.w_limits(v), dt, lo_lat, hi_lat, head_lim,
@@ -267,10 +270,13 @@ class RCLBNMPCLaw:
         curvature the steering has reached the cost is flat in the commands, and the SQP stalls where it
         started; bench seed 4409, MATS s1021326272 at 1.22 m/s through rough ground: turn rates of
         -0.03 to -0.14 rad/s against a -0.37 rad/s limit while the heading error grew from 1 to 13 deg).
-        `A` receives the chosen start's GP inputs."""
-        warm = nlp.evaluate(v, w, A)
+        `A` receives the chosen start's GP inputs. A skid-steer whose drive's acceleration limit is known
+        starts from the warm start brought within it (turn_accel.TurnLead)."""
         if not nlp.problem.curvature_steered:
-            return warm
+            if nlp.turn_lead is not None:
+                w = nlp.turn_lead.followable(w, nlp.problem.start.xi0[1])
+            return nlp.evaluate(v, w, A)
+        warm = nlp.evaluate(v, w, A)
         limit, best, best_a = nlp.w_limits(v), warm, A.copy()
         for held in (limit, -limit):
             a = np.empty_like(A)

@@ -64,6 +64,10 @@ class NMPCSettings:
     # turn (actuator.py); 1: none. None: identified from the route's teach pass against the localizer's
     # heading (identification.py), or 1 without one
     turn_gain: float | None = None
+    # a skid-steer's turn drive: its acceleration limit, rad/s^2 (turn_accel.py); C-/RC-LB-NMPC keep each turn
+    # command's lead over the drive within what it lets the drive follow. None: read off the earlier
+    # repeats' commands and wheel odometry under the same nominal model (no limit until one met it)
+    turn_accel_max_radps2: float | None = None
     # with a learned model, weigh the heading error against the crab angle the model needs to hold the
     # route at the planned speed (nmpc.crab_offsets), not the taught heading, which holds the teach
     # speed's crab: for repeats well above the teach speed on ground that slides the robot sideways
@@ -88,6 +92,8 @@ class NMPCSettings:
             object.__setattr__(self, "actuator_tau_s", tau)
         if self.curvature_rate_max_per_ms is not None and self.curvature_rate_max_per_ms < 0:
             raise ValueError("curvature_rate_max_per_ms must be >= 0 (0: no limit)")
+        if self.turn_accel_max_radps2 is not None and not self.turn_accel_max_radps2 > 0:
+            raise ValueError("turn_accel_max_radps2 must be > 0 (leave it out to learn it from the repeats)")
         if self.turn_gain is not None and not MIN_TURN_GAIN <= self.turn_gain <= MAX_TURN_GAIN:
             raise ValueError(f"turn_gain must be in [{MIN_TURN_GAIN}, {MAX_TURN_GAIN}] (1: the robot turns as its drive)")
         if self.horizon < 1 or self.max_iter < 1 or self.max_evals < 2 or min(

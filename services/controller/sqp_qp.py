@@ -8,6 +8,7 @@ Variables z = (dv_0..dv_{K-1}, dw_0..dw_{K-1}, s_lat (K), s_head (K)):
          head_j + tight_j + J_head,j d - s_head,j <= head_lim_j
          head_j - tight_j + J_head,j d + s_head,j >= -head_lim_j
          lo_d <= d <= hi_d                                             (actuator limits, trust region)
+         lo_lead <= M dw <= hi_lead                                    (the turn drive's acceleration: turn_accel.py)
          s >= 0
 
 The sparsity pattern depends only on K: one OSQP workspace (osqp_workspace.py) is updated in place.
@@ -23,7 +24,7 @@ class CorridorQP:
     def __init__(self, K: int, slack_weight: float):
         self.K = K
         self.rho = slack_weight
-        n, m = 4 * K, 8 * K
+        n, m = 4 * K, 9 * K
         p_mask = np.zeros((n, n), dtype=bool)
         p_mask[:2 * K, :2 * K] = True
         p_mask[np.arange(2 * K, n), np.arange(2 * K, n)] = True
@@ -33,16 +34,18 @@ class CorridorQP:
         for blk, off in ((0, 2 * K), (1, 2 * K), (2, 3 * K), (3, 3 * K)):
             a_mask[blk * K + i, off + i] = True
         a_mask[4 * K + np.arange(n), np.arange(n)] = True
+        a_mask[8 * K:, K:2 * K] = np.tri(K, K, dtype=bool)
         self._qp = FixedPatternQP(p_mask, a_mask, eps_abs=1e-5, eps_rel=1e-5, max_iter=2000)
         self._P = np.zeros((n, n))
         self._P[2 * K:, 2 * K:] = np.eye(2 * K) * slack_weight
         self._A = np.zeros((m, n))
-        self._A[4 * K:, :] = np.eye(n)
+        self._A[4 * K:8 * K, :] = np.eye(n)
         for blk, off, sign in ((0, 2 * K, -1), (1, 2 * K, 1), (2, 3 * K, -1), (3, 3 * K, 1)):
             self._A[blk * K + i, off + i] = sign
 
-    def solve(self, r, J, E, dE, tight, dtight_v, lo_lat, hi_lat, head_lim, lo_d, hi_d):
-        """The step d (2K) and the largest slack used, or (None, 0) when OSQP gives nothing usable."""
+    def solve(self, r, J, E, dE, tight, dtight_v, lo_lat, hi_lat, head_lim, lo_d, hi_d, lead=None):
+        """The step d (2K) and the largest slack used, or (None, 0) when OSQP gives nothing usable. `lead`:
+        (M, lo, hi) of the turn commands' lead over the drive (None: unbounded)."""
         K = self.K
         H = J.T @ J
         H[np.diag_indices(2 * K)] += 1e-6
@@ -57,10 +60,15 @@ class CorridorQP:
         A[2 * K:3 * K, :2 * K] = Jhead
         A[3 * K:4 * K, :2 * K] = Jhead
         inf = np.full(K, np.inf)
+        if lead is None:
+            A[8 * K:, K:2 * K] = 0.0
+            lo_lead, hi_lead = -inf, inf
+        else:
+            A[8 * K:, K:2 * K], lo_lead, hi_lead = lead
         lo = np.concatenate([-inf, lo_lat - E[:, 1] + tight[:, 1], -inf, -head_lim - E[:, 2] + tight[:, 2],
-                             lo_d, np.zeros(2 * K)])
+                             lo_d, np.zeros(2 * K), lo_lead])
         hi = np.concatenate([hi_lat - E[:, 1] - tight[:, 1], inf, head_lim - E[:, 2] - tight[:, 2], inf,
-                             hi_d, np.full(2 * K, np.inf)])
+                             hi_d, np.full(2 * K, np.inf), hi_lead])
         x = self._qp.solve(self._P, q, A, lo, hi)
         if x is None:
             return None, 0.0
