@@ -237,7 +237,8 @@ def fit_channel(u: np.ndarray, y: np.ndarray, dt: float, use: np.ndarray | None 
 
 class TeachRecorder:
     """Collects, per tick of the teach pass: the command held from the tick on, the wheel odometry at
-    the tick, and the pose estimate relative to the newest vertex when the localizer gives one."""
+    the tick, and the pose estimate relative to the newest vertex when the localizer gives one. A
+    repeat's commands and odometry are collected the same way for its turn drive's limit (turn_accel.py)."""
 
     def __init__(self, dt: float):
         self.dt = dt
