@@ -83,3 +83,16 @@ def test_rc_lb_nmpc_keeps_its_turn_commands_within_what_the_drive_can_follow():
     assert law.turn_lead.max_radps == pytest.approx(0.2)
     assert np.all(np.abs(leads) <= 0.2 + 1e-4), leads
     assert res.w_radps > 0.1 and not res.stop_reason                     # it still turns towards the route
+
+
+def test_the_limit_is_kept_on_disk_per_nominal_model(tmp_path, caplog):
+    from services.controller import turn_accel_file
+    turn_accel_file.save(tmp_path, "unicycle-tauw317ms", 0.9)
+    assert turn_accel_file.load(tmp_path, "unicycle-tauw317ms") == 0.9
+    assert turn_accel_file.load(tmp_path, "unicycle-other") is None                  # none stored
+    turn_accel_file.file_of(tmp_path, "unicycle-tauw317ms").write_bytes(b"\x93not a record")
+    with caplog.at_level("WARNING"):
+        assert turn_accel_file.load(tmp_path, "unicycle-tauw317ms") is None
+    assert "read again from the next repeat" in caplog.text
+    with pytest.raises(ValueError):
+        turn_accel_file.TurnAccelRecord(model_tag="m", limit_radps2=math.inf)

@@ -39,7 +39,7 @@ from services.controller.nominal_models import NominalModels
 from services.controller.registry import LawInputs, law_entry
 from services.controller.settings import NMPCSettings
 from services.controller.tracker import Decision, PathTracker, TrackerLimits
-from services.controller import turn_loss_file
+from services.controller import turn_accel_file, turn_loss_file
 from services.controller.turn_accel import fit_turn_accel
 from services.controller.turn_speed import TurnLoss
 
@@ -181,12 +181,21 @@ class ControllerService(Service):
         met, where none is set by hand; with learning off, none."""
         if settings.turn_accel_max_radps2 is not None or not self.learning:
             return settings
-        limit = self.turn_accel.get(settings.lag(self.cfg.period_s).model_tag)
+        tag = settings.lag(self.cfg.period_s).model_tag
+        if tag not in self.turn_accel and self.cfg.data_dir:
+            limit = turn_accel_file.load(self._turn_accel_dir, tag)
+            if limit is not None:
+                self.turn_accel[tag] = limit
+        limit = self.turn_accel.get(tag)
         return settings if limit is None else dataclasses.replace(settings, turn_accel_max_radps2=limit)
+
+    @property
+    def _turn_accel_dir(self) -> FsPath:
+        return FsPath(self.cfg.data_dir) / "turn_accel"
 
     def _learn_turn_accel(self, core: ControllerCore) -> str:
         """The limit this repeat's commands and odometry show (turn_accel.py), kept for the next repeats
-        under its model. The last second is left out: its messages may still be on their way, and a seed
+        under its model (and on disk, for a restarted controller). The last second is left out: its messages may still be on their way, and a seed
         must give one run."""
         rec, self.drive_record = self.drive_record, None
         if rec is None or not rec.u:
@@ -198,6 +207,11 @@ class ControllerService(Service):
             return ""
         if self.learning and math.isfinite(fit.limit_radps2):
             self.turn_accel[lag.model_tag] = fit.limit_radps2
+            if self.cfg.data_dir:
+                try:
+                    turn_accel_file.save(self._turn_accel_dir, lag.model_tag, fit.limit_radps2)
+                except OSError as exc:
+                    self.log.warning("turn drive's limit not saved (%s): a restarted controller reads it again", exc)
         return fit.describe()
 
     def _turn_loss(self, lag: ActuatorLag) -> TurnLoss:
