@@ -55,7 +55,7 @@ def _compare(args) -> int:
     import json
     from deploy.compare import CompareError, compare_dirs, describe
     try:
-        c = compare_dirs(args.a, args.b)
+        c = compare_dirs(args.a, args.b, frozenset(args.ignore))
     except CompareError as exc:
         _say("experiment compare", str(exc))
         return 2
@@ -231,6 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "trial's figures; exit status 0 when every pair is the same run, 1 when not (as diff)")
     compare.add_argument("a", help="an experiment's output directory, or a directory of them (bench --out)")
     compare.add_argument("b", help="the same for the other run(s); directories of runs pair by name")
+    compare.add_argument("--ignore", action="append", default=[], metavar="KEY",
+                         help="leave this summary.json key out of the judgement, at the top level and in each "
+                              "trial (repeatable; e.g. controller_note, where only a note's wording changed)")
     compare.set_defaults(func=_compare)
 
     launch = sub.add_parser("launch", help="start router and services (a scenario, or one host of a manifest) "

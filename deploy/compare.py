@@ -73,19 +73,28 @@ def runs_in(directory: str | FsPath) -> dict[str, FsPath]:
     return runs
 
 
-def compare_dirs(a: str | FsPath, b: str | FsPath) -> Comparison:
-    """Pair the runs of `a` and `b` (two single runs pair whatever their names) and compare each pair."""
+def compare_dirs(a: str | FsPath, b: str | FsPath, ignore: frozenset[str] = frozenset()) -> Comparison:
+    """Pair the runs of `a` and `b` (two single runs pair whatever their names) and compare each pair,
+    leaving the keys in `ignore` out (at the summary's top level and in each trial)."""
     runs_a, runs_b = runs_in(a), runs_in(b)
     if len(runs_a) == 1 and len(runs_b) == 1 and (FsPath(a) / SUMMARY).is_file() and (FsPath(b) / SUMMARY).is_file():
         (name, da), (_, db) = next(iter(runs_a.items())), next(iter(runs_b.items()))
-        return Comparison((compare_summaries(name, _load(da), _load(db)),), (), ())
-    pairs = tuple(compare_summaries(n, _load(runs_a[n]), _load(runs_b[n])) for n in sorted(set(runs_a) & set(runs_b)))
+        return Comparison((compare_summaries(name, _load(da), _load(db), ignore),), (), ())
+    pairs = tuple(compare_summaries(n, _load(runs_a[n]), _load(runs_b[n]), ignore)
+                  for n in sorted(set(runs_a) & set(runs_b)))
     return Comparison(pairs, tuple(sorted(set(runs_a) - set(runs_b))), tuple(sorted(set(runs_b) - set(runs_a))))
 
 
-def compare_summaries(name: str, a: dict[str, Any], b: dict[str, Any]) -> PairComparison:
-    diff = differences(reproducible_part(a), reproducible_part(b))
+def compare_summaries(name: str, a: dict[str, Any], b: dict[str, Any],
+                      ignore: frozenset[str] = frozenset()) -> PairComparison:
+    diff = differences(_without(reproducible_part(a), ignore), _without(reproducible_part(b), ignore))
     return PairComparison(name, not diff, tuple(diff), _figures(a), _figures(b))
+
+
+def _without(summary: dict[str, Any], keys: frozenset[str]) -> dict[str, Any]:
+    out = {k: v for k, v in summary.items() if k not in keys}
+    out["trials"] = [{k: v for k, v in t.items() if k not in keys} for t in summary["trials"]]
+    return out
 
 
 def _load(run_dir: FsPath) -> dict[str, Any]:

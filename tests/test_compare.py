@@ -61,3 +61,17 @@ def test_a_directory_without_a_run_is_a_clear_error(tmp_path, capsys):
     (tmp_path / "bad" / "summary.json").write_text('{"scenario": "x"}')
     assert main(["experiment", "compare", str(tmp_path / "a"), str(tmp_path / "bad")]) == 2
     assert "not an experiment summary" in capsys.readouterr().err
+
+
+def test_keys_left_out_of_the_judgement(tmp_path, capsys):
+    """A change that only rewords each trial's note: different as written, the same run without the note."""
+    a = summary("s1", (0.10, 0), (0.05, 0))
+    b = json.loads(json.dumps(a))
+    for t in b["trials"]:
+        t["controller_note"] = "turn drive: no acceleration limit met"
+    write(tmp_path / "a", a)
+    write(tmp_path / "b", b)
+    assert main(["experiment", "compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 1
+    capsys.readouterr()
+    assert main(["experiment", "compare", "--ignore", "controller_note", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    assert last_json(capsys)[1]["identical"] == 1
