@@ -28,10 +28,9 @@ def drive(u, tau, limit, noise, seed=4):
 def corner_commands(amplitude, n=600, seed=2):
     """Turns held for 1-4 s, as a repeat's plans command them through corners and back."""
     rng = np.random.default_rng(seed)
-    u, k = [], 0
+    u = []
     while len(u) < n:
         u += [amplitude * rng.uniform(-1, 1)] * int(rng.integers(10, 40))
-        k += 1
     return np.array(u[:n] + [np.nan])
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -93,6 +94,15 @@ def fit_turn_accel(u: np.ndarray, y: np.ndarray, dt: float, tau_s: float) -> Tur
     return TurnAccelFit(float(limits[best]), float(rmse[best]), free, asking, n)
 
 
+@lru_cache(maxsize=8)
+def _lead_matrix(beta: float, K: int) -> np.ndarray:
+    j = np.arange(K)
+    diff = j[:, None] - j[None, :]
+    M = np.eye(K) - np.where(diff > 0, (1.0 - beta) * beta ** np.maximum(diff - 1, 0), 0.0)
+    M.setflags(write=False)
+    return M
+
+
 @dataclass(frozen=True)
 class TurnLead:
     """How far a turn command may lead the drive's state: the lag (time constant tau) answers a command
@@ -110,11 +120,9 @@ class TurnLead:
         return cls(math.exp(-dt / tau_s), limit_radps2 * tau_s)
 
     def matrix(self, K: int) -> np.ndarray:
-        """M (K, K): the leads' change per change of the commands."""
-        j = np.arange(K)
-        diff = j[:, None] - j[None, :]
-        T = np.where(diff > 0, (1.0 - self.beta) * self.beta ** np.maximum(diff - 1, 0), 0.0)
-        return np.eye(K) - T
+        """M (K, K): the leads' change per change of the commands (read-only: built once per drive and
+        horizon, as every SQP iteration asks for it)."""
+        return _lead_matrix(self.beta, K)
 
     def leads(self, w: np.ndarray, xi0: float) -> np.ndarray:
         """u_k - xi_k of the commands w (K,) from the drive's state xi0."""
