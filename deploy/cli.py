@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import signal
 import sys
 import threading
@@ -301,6 +302,9 @@ def main(argv: list[str] | None = None) -> int:
         print(file=sys.stderr)
         _say(args.command or "", "interrupted")
         return 130
+    except BrokenPipeError:   # the reader went away (`lbc ... | head`): what it wanted is out, end quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())   # Python's own flush at exit would fail
+        return 141
 
 
 if __name__ == "__main__":

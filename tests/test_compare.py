@@ -1,7 +1,12 @@
 """`lbc experiment compare`: two runs side by side, judged by what one seed in lockstep must reproduce."""
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 from deploy.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def summary(name, *trials):
@@ -75,3 +80,16 @@ def test_keys_left_out_of_the_judgement(tmp_path, capsys):
     capsys.readouterr()
     assert main(["experiment", "compare", "--ignore", "controller_note", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
     assert last_json(capsys)[1]["identical"] == 1
+
+
+def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
+    """`lbc experiment compare A B | head -1`: the pipe closes under the command, which ends without a traceback."""
+    for side in ("a", "b"):
+        for k in range(400):                       # more lines than a pipe's buffer holds
+            write(tmp_path / side / f"s{k:03d}", summary(f"s{k:03d}", (0.1 if side == "a" else 0.2, 0)))
+    cmd = [sys.executable, "-m", "deploy.cli", "experiment", "compare", str(tmp_path / "a"), str(tmp_path / "b")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    assert proc.stdout.readline()                  # the first line, then the reader goes away
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141 and "Traceback" not in err and "BrokenPipe" not in err, err
