@@ -3,15 +3,13 @@ model in the controller's data_dir: a controller restarted between trials keeps 
 showed, as it keeps its turn loss (turn_loss_file.py)."""
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path as FsPath
 
-from common.atomic_file import write_atomically
-from common.codec import DecodeError, Message, decode, encode
+from common.codec import Message
+from services.controller import per_model_file
 
-log = logging.getLogger(__name__)
 SUFFIX = ".turnaccel"
 
 
@@ -27,25 +25,15 @@ class TurnAccelRecord(Message):
 
 
 def file_of(directory: str | FsPath, model_tag: str) -> FsPath:
-    return FsPath(directory) / f"{model_tag}{SUFFIX}"
+    return per_model_file.file_of(directory, model_tag, SUFFIX)
 
 
 def save(directory: str | FsPath, model_tag: str, limit_radps2: float) -> FsPath:
-    return write_atomically(file_of(directory, model_tag),
-                            encode(TurnAccelRecord(model_tag=model_tag, limit_radps2=limit_radps2)))
+    return per_model_file.save(directory, TurnAccelRecord(model_tag=model_tag, limit_radps2=limit_radps2), SUFFIX)
 
 
 def load(directory: str | FsPath, model_tag: str) -> float | None:
     """The stored limit of this model, or None: none stored, or an unreadable file (logged)."""
-    f = file_of(directory, model_tag)
-    if not f.exists():
-        return None
-    try:
-        rec = decode(TurnAccelRecord, f.read_bytes())
-    except (DecodeError, OSError) as exc:
-        log.warning("%s not used (%s): the turn drive's limit is read again from the next repeat", f, exc)
-        return None
-    if rec.model_tag != model_tag:
-        log.warning("%s is of model %s: the turn drive's limit is read again from the next repeat", f, rec.model_tag)
-        return None
-    return rec.limit_radps2
+    rec = per_model_file.load(directory, model_tag, TurnAccelRecord, SUFFIX,
+                              "the turn drive's limit is read again from the next repeat")
+    return None if rec is None else rec.limit_radps2

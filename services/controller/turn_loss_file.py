@@ -8,8 +8,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path as FsPath
 
-from common.atomic_file import write_atomically
-from common.codec import DecodeError, Message, decode, encode
+from common.codec import Message
+from services.controller import per_model_file
 from services.controller.turn_speed import TurnLoss
 
 log = logging.getLogger(__name__)
@@ -31,28 +31,23 @@ class TurnLossRecord(Message):
 
 
 def file_of(directory: str | FsPath, model_tag: str) -> FsPath:
-    return FsPath(directory) / f"{model_tag}{SUFFIX}"
+    return per_model_file.file_of(directory, model_tag, SUFFIX)
 
 
 def save(directory: str | FsPath, model_tag: str, loss: TurnLoss) -> FsPath:
     rec = TurnLossRecord(model_tag=model_tag, turn_gain=loss.turn_gain, sxx=loss.sxx, sxy=loss.sxy,
                          samples=loss.samples)
-    return write_atomically(file_of(directory, model_tag), encode(rec))
+    return per_model_file.save(directory, rec, SUFFIX)
 
 
 def load(directory: str | FsPath, model_tag: str, turn_gain: float) -> TurnLoss:
     """The stored loss of this model, or a fresh one: none stored, an unreadable file, or one learned
     over another turn gain (each logged)."""
-    f = file_of(directory, model_tag)
-    if not f.exists():
+    rec = per_model_file.load(directory, model_tag, TurnLossRecord, SUFFIX, "the turn loss is learned afresh")
+    if rec is None:
         return TurnLoss(turn_gain)
-    try:
-        rec = decode(TurnLossRecord, f.read_bytes())
-    except (DecodeError, OSError) as exc:
-        log.warning("%s not used (%s): the turn loss is learned afresh", f, exc)
-        return TurnLoss(turn_gain)
-    if rec.model_tag != model_tag or not math.isclose(rec.turn_gain, turn_gain, rel_tol=1e-6):
-        log.warning("%s is of model %s, turn gain %.3f: the turn loss is learned afresh", f, rec.model_tag,
-                    rec.turn_gain)
+    if not math.isclose(rec.turn_gain, turn_gain, rel_tol=1e-6):
+        log.warning("%s was learned over turn gain %.3f, not %.3f: the turn loss is learned afresh",
+                    file_of(directory, model_tag), rec.turn_gain, turn_gain)
         return TurnLoss(turn_gain)
     return TurnLoss(turn_gain, rec.sxx, rec.sxy, rec.samples)
