@@ -80,7 +80,6 @@ Pure: inputs in, factors out.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -127,31 +126,12 @@ class Beyond:
 
 @dataclass(frozen=True)
 class PlaceCap:
-    """The speed the latest pass near a place allows here (inf: no limit), the share of `what` (the
-    corridor, or the steering margin: turn_share.py) it took and where (route distance of the place's start);
-    and the places ahead as (from, to, cap) in route metres, braked into at `brake_mps2` (`at`)."""
+    """The speed the latest pass near a place allows (inf: no limit), the share of `what` (the corridor,
+    or the steering margin: turn_share.py) it took and where (route distance of the place's start)."""
     speed_mps: float = math.inf
     share: float = 0.0
     at_m: float = math.nan
     what: str = "corridor"
-    places: tuple[tuple[float, float, float], ...] = ()
-    brake_mps2: float = math.inf
-
-    def at(self, s_m: float) -> float:
-        """The speed allowed at `s_m`: each place's cap over its stretch, and before it the speed from which
-        the robot brakes to that cap by the stretch's start (without places: `speed_mps` everywhere)."""
-        if not self.places:
-            return self.speed_mps
-        return min((_braked_into(p, s_m, self.brake_mps2) for p in self.places), default=math.inf)
-
-
-def _braked_into(place: tuple[float, float, float], s_m: float, brake_mps2: float) -> float:
-    start, end, cap = place
-    if s_m >= end:
-        return math.inf
-    if s_m >= start:
-        return cap
-    return math.sqrt(cap * cap + 2.0 * brake_mps2 * (start - s_m)) if math.isfinite(brake_mps2) else cap
 
 
 class SpreadCalibration:
@@ -241,20 +221,18 @@ class SpreadCalibration:
 
     def speed_cap_at(self, s_m: float | None, v_mps: float = 0.0) -> PlaceCap:
         """The fastest plan the latest passes' errors over the places near (_near) allow (module
-        docstring): over each place and its neighbours its pass's speed times max(1, GUARD_SHARE / share),
-        braked into from before; here, the lowest of those."""
+        docstring): the lowest over those places of their pass's speed times max(1, GUARD_SHARE / share)."""
         if s_m is None or not math.isfinite(s_m):
             return PlaceCap()
-        places, here = [], PlaceCap()
+        out = PlaceCap()
         for b in self._near(s_m, v_mps):
             (share, what), v = self.shares_before.get(b, (0.0, "")), self.speeds_before.get(b, 0.0)
             if share <= 0.0 or v <= 0.0:
                 continue
-            place = ((b - 1) * PLACE_BIN_M, (b + 2) * PLACE_BIN_M, v * max(1.0, GUARD_SHARE / share))
-            places.append(place)
-            if (cap := _braked_into(place, s_m, self.brake_mps2)) < here.speed_mps:
-                here = PlaceCap(cap, share, b * PLACE_BIN_M, what)
-        return dataclasses.replace(here, places=tuple(places), brake_mps2=self.brake_mps2)
+            cap = v * max(1.0, GUARD_SHARE / share)
+            if cap < out.speed_mps:
+                out = PlaceCap(cap, share, b * PLACE_BIN_M, what)
+        return out
 
     def predict(self, tick: int, predictions: list[Prediction]) -> None:
         """The law's predictions of step k made at `tick`: prediction j is for the estimate of tick + j."""

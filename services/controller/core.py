@@ -51,9 +51,7 @@ class ControllerCore:
         self.floors = self.calibration.floors_by_speed()
         beyond = self.calibration.beyond_at(self.s_m, self.v_mps)
         factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
-        # the places a plan at the asked speed could brake into, not only those within the last command's reach
-        cap = self.calibration.speed_cap_at(self.s_m, max(self.v_mps, self._asked_here())) \
-            if self.tracker.corridor is not None else None
+        cap = self.calibration.speed_cap_at(self.s_m, self.v_mps) if self.tracker.corridor is not None else None
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors,
                                      (beyond.speed_mps, factors), self.floors if self.floors.any() else None, cap)
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
@@ -64,9 +62,6 @@ class ControllerCore:
             # a trial has depends on when the runner ends it
             observed = []
         return decision, observed
-
-    def _asked_here(self) -> float:
-        return self.tracker.speed_at(self.s_m) if self.s_m is not None and math.isfinite(self.s_m) else 0.0
 
     def _learn_turn(self, obs: Observation) -> None:
         """The period's turn for the tracker's turn loss (turn_speed.py): the drive's turn rate by the lag

@@ -87,7 +87,7 @@ def _capped(ctx: StepContext) -> tuple[StepContext, str]:
     c, f = cap.speed_mps, ctx.speed_at
     note = f"held to {c:.2f} m/s: the last pass here took {cap.share:.0%} of the {cap.what} at {cap.at_m:.0f} m" \
         if c < ctx.v_mps else ""
-    return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), cap.at(s))), note
+    return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), c)), note
 
 
 def _beyond(ctx: StepContext, cov: HorizonCovariance) -> tuple[float, HorizonCovariance] | None:
