@@ -11,7 +11,7 @@ from services.controller.corridor import Corridor
 from services.controller.robust_nmpc import RCLBNMPCLaw
 from services.controller.settings import NMPCSettings
 from services.controller.speed_ladder import SPEED_LADDER
-from services.controller.steered_out import TURN_BACK_SHARE, TurnBack, lateral_reach
+from services.controller.steered_out import lateral_reach
 from tests.test_robust_nmpc import DT, arc_path, ctx_for
 
 
@@ -40,43 +40,6 @@ def test_the_reach_is_the_arc_of_the_plans_heading_change_per_metre_worked_by_ha
     # a plan that does not move: the heading error held, in a straight line
     E, X = _straight_plan(-0.05, np.full(10, -0.02), 0.0)
     assert lateral_reach(E, X, 1.0) == pytest.approx((-0.05 + math.sin(-0.02), -0.05))
-
-
-
-def test_a_plan_turning_towards_the_route_holds_its_heading_and_turns_back_once_across_worked_by_hand():
-    """Bench seed 5683's MATS s1297402567 stopped on a straight, 0.05-0.07 m off, its crawl's plan turning its
-    heading to -4.5 deg towards the route: carried on as it was, the arc reached the far edge."""
-    E, X = _straight_plan(0.07, np.linspace(-0.03, -0.0785, 10), 0.02)
-    rho = (-0.0785 - E[4, 2]) / 0.10                                   # per metre over the plan's second half
-    low, _ = lateral_reach(E, X, 1.5)
-    assert low == pytest.approx(0.07 + math.sin(-0.0785) * 1.5 + 0.5 * rho * 2.25) and low < -0.35
-    # held at -4.5 deg it crosses the route at x_c; from there it closes at half the curvature limit
-    straight = TurnBack(kappa_max=0.304, kappa_route=0.0, kappa_cmd=-0.1)
-    x_c = 0.07 / math.sin(0.0785)
-    back = TURN_BACK_SHARE * 0.304
-    x_b = 0.0785 / back                                                 # 0.52 m: within the lookahead's rest
-    assert x_b < 1.5 - x_c
-    low, high = lateral_reach(E, X, 1.5, straight)
-    assert high == pytest.approx(0.07)
-    assert low == pytest.approx(math.sin(-0.0785) * x_b + 0.5 * back * x_b ** 2) and low == pytest.approx(-0.0203, abs=1e-4)
-    # in a corner turning the way the heading points the robot has less to turn back with: the rest of the
-    # lookahead ends first
-    corner = TurnBack(kappa_max=0.304, kappa_route=0.25, kappa_cmd=-0.3)
-    back = TURN_BACK_SHARE * (0.304 - 0.25)
-    x_b = 1.5 - x_c
-    assert lateral_reach(E, X, 1.5, corner)[0] == pytest.approx(math.sin(-0.0785) * x_b + 0.5 * back * x_b ** 2)
-    # the steering held at its limit against the heading's growth: the ground's turn, carried on as before
-    # until it is across, then turned back
-    held = TurnBack(kappa_max=0.304, kappa_route=0.0, kappa_cmd=0.3)
-    b, a = math.sin(-0.0785), 0.5 * rho
-    x_c = (-b - math.sqrt(b * b - 4 * a * 0.07)) / (2 * a)
-    h_c = -0.0785 + rho * x_c
-    x_b = min(-h_c / (TURN_BACK_SHARE * 0.304), 1.5 - x_c)
-    assert lateral_reach(E, X, 1.5, held)[0] == pytest.approx(
-        math.sin(h_c) * x_b + 0.5 * TURN_BACK_SHARE * 0.304 * x_b ** 2)
-    # a heading pointing away from the route is carried on as before, whatever the robot could turn
-    E, X = _straight_plan(0.10, np.linspace(0.05, 0.059, 10), 0.01)
-    assert lateral_reach(E, X, 1.5, straight) == lateral_reach(E, X, 1.5)
 
 
 def _ackermann_at_the_slowest_rung(kappa_max: float):

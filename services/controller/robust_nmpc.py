@@ -51,7 +51,7 @@ from services.controller.settings import NMPCSettings
 from services.controller.speed_ladder import SPEED_LADDER, AskedModel, Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
 from services.controller.turn_accel import TurnLead
-from services.controller.steered_out import TurnBack, lateral_reach
+from services.controller.steered_out import lateral_reach
 from services.controller.uncertainty import lateral_sigma_speed_jacobian, variance_speed_derivatives
 
 SLOWEST_REACHED = 1.25   # the drive's speed at most this times the slowest rung's for the robot to be at it
@@ -376,10 +376,8 @@ class RCLBNMPCLaw:
         accepted so; what this adds is where the mean goes."""
         if not nlp.problem.curvature_steered:
             return ""
-        a, L, v_min = self.alpha, self.settings.lookahead_m, nlp.problem.s.v_min_mps
-        back = TurnBack(kappa_max=nlp.w_limit_at(v_min) / v_min, kappa_route=float(nlp.problem.ref.heading_slope[-1]),
-                        kappa_cmd=float(it.w[-1] / max(it.v[-1], v_min)))
-        low, high = lateral_reach(it.E, it.X, L, back)
+        a, L = self.alpha, self.settings.lookahead_m
+        low, high = lateral_reach(it.E, it.X, L)
         s_lat, lo, hi = float(it.sig[0, 1]), float(nlp.lo_lat[-1]), float(nlp.hi_lat[-1])
         if lo <= low - a * s_lat and high + a * s_lat <= hi:
             return ""
