@@ -95,3 +95,13 @@ def test_the_limit_is_kept_on_disk_per_nominal_model(tmp_path, caplog):
     assert "read again from the next repeat" in caplog.text
     with pytest.raises(ValueError):
         turn_accel_file.TurnAccelRecord(model_tag="m", limit_radps2=math.inf)
+
+
+def test_a_record_filed_under_another_models_name_is_not_used(tmp_path, caplog):
+    """per_model_file.load checks the record's own model, not only its file name."""
+    from services.controller import turn_accel_file
+    theirs = turn_accel_file.save(tmp_path, "unicycle-other", 1.5)
+    theirs.rename(turn_accel_file.file_of(tmp_path, "unicycle-tauw317ms"))
+    with caplog.at_level("WARNING"):
+        assert turn_accel_file.load(tmp_path, "unicycle-tauw317ms") is None
+    assert "is of model unicycle-other" in caplog.text

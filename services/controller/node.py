@@ -195,8 +195,8 @@ class ControllerService(Service):
 
     def _learn_turn_accel(self, core: ControllerCore) -> str:
         """The limit this repeat's commands and odometry show (turn_accel.py), kept for the next repeats
-        under its model (and on disk, for a restarted controller). The last second is left out: its messages may still be on their way, and a seed
-        must give one run."""
+        under its model (and on disk, for a restarted controller). The last second is left out: its
+        messages may still be on their way, and a seed must give one run."""
         rec, self.drive_record = self.drive_record, None
         if rec is None or not rec.u:
             return ""
