@@ -453,30 +453,6 @@ def test_a_rung_faster_than_the_places_passes_vouch_for_is_widened_by_the_first_
     assert held.uncertainty.spread_kappa == ()
 
 
-def test_a_rung_between_the_places_pass_speed_and_growth_times_it_is_widened_by_a_share_growing_with_speed():
-    """The latest pass drove the place at 0.5 m/s and vouches in full for nothing faster than 1.25 m/s
-    (factors of 3 beyond): a rung at v between them is widened by (v - 0.5) / 0.75 of the way from a
-    variance factor of 1 to 9. Where all of it came at once above 1.25 m/s, the robot drove the top rung
-    unwidened; now it settles where the widened spread just fits, reported with its factor."""
-    path = arc_path()
-    corridor = Corridor(path.s, 0.3, math.radians(20))
-    base = ctx_for(path, path.pose_at(20.0), v=1.0, corridor=corridor, prev_cmd=(1.0, 1.2 / 15.0))
-
-    def run(from_mps):
-        ctx = dataclasses.replace(base, spread_beyond_mps=1.25, spread_beyond_from_mps=from_mps,
-                                  spread_factors_beyond=(3.0,) * 40)
-        return RCLBNMPCLaw(NMPCSettings(sqp_iter=10), DT).angular(ctx)
-
-    cliff = run(math.inf)
-    assert cliff.uncertainty.speed_scale == 1.0 and cliff.uncertainty.spread_kappa == ()
-    assert run(1.0).uncertainty.spread_kappa == ()           # the pass drove as fast: nothing to widen
-    ramp = run(0.5)
-    v_top = ramp.uncertainty.speed_scale                      # the scheduled speed is 1 m/s
-    assert 0.5 < v_top < 1.0 and ramp.v_mps <= v_top + 1e-9
-    assert ramp.uncertainty.spread_kappa == pytest.approx([1.0 + 8.0 * (v_top - 0.5) / 0.75] * len(
-        ramp.uncertainty.spread_kappa))
-
-
 def test_a_faster_rung_never_scales_a_crawls_turn_rate_corrections_up():
     """A warm start that crawled at 0.05 m/s with a 0.5 rad/s correction: the full-speed rung keeps that
     correction (scaled down, never up by 1.0 / 0.05, which made a turn of -5.8 rad/s out of a crawl's
