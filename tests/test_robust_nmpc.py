@@ -20,8 +20,7 @@ from services.controller.horizon_covariance import HorizonCovariance, variance_m
 from services.controller.laws import StepContext
 from services.controller.nmpc import build_problem
 from services.controller.settings import NMPCSettings
-from services.controller.calibration import Beyond
-from services.controller.speed_ladder import SPEED_LADDER, AskedModel, Widening, _try_rung, fastest_fitting_rung, overflow
+from services.controller.speed_ladder import SPEED_LADDER, AskedModel, _try_rung, fastest_fitting_rung, overflow
 from services.controller.minmax import SIGNS
 from services.controller.missed_variance import MissedVariance
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
@@ -536,12 +535,12 @@ def _ladder_where_nothing_fits(slow_factor: float):
     s, base, v, w, narrow = _ladder_on_the_arc()
     wide = dataclasses.replace(narrow, factors=np.full(base.K, slow_factor))
     cap = np.full((base.K, 3), 1e-4)
-    rungs = [_try_rung(k, base, v, w, wide, np.empty((base.K, 9)), s.v_min_mps, Widening(Beyond(0.5), narrow))
+    rungs = [_try_rung(k, base, v, w, wide, np.empty((base.K, 9)), s.v_min_mps, (0.5, narrow))
              for k in range(len(SPEED_LADDER))]
     a_out = np.empty((base.K, 9))
-    chosen = fastest_fitting_rung(base, v, w, wide, cap, 3.0, 2.0, None, a_out, Widening(Beyond(0.5), narrow))
+    chosen = fastest_fitting_rung(base, v, w, wide, cap, 3.0, 2.0, None, a_out, (0.5, narrow))
     A = np.empty_like(a_out)      # the chosen rung's GP inputs, tested on their own
-    _try_rung(chosen.index, base, v, w, wide, A, s.v_min_mps, Widening(Beyond(0.5), narrow))
+    _try_rung(chosen.index, base, v, w, wide, A, s.v_min_mps, (0.5, narrow))
     return chosen, [overflow(r, cap, 3.0, 2.0) for r in rungs], a_out, A
 
 

@@ -59,9 +59,7 @@ What a pass met at a place holds near the speed it drove there: a calm pass at 1
 2.3 m/s, where the learned model has no experience (its variance the prior's) and the errors of a rough
 patch outgrow a lagging turn. So each place also keeps the fastest speed the latest pass over it (the
 teach pass, before trial 1) commanded there, the pass whose needs the place holds, and a plan faster than
-GROWTH times it is widened by the larger of those needs and the teach pass's (`beyond_at`), a plan between
-that speed and GROWTH times it by a share of them growing with its speed (`Beyond.share`; at a step from
-none to all, plans settled just below it with no widening at all): speed at a
+GROWTH times it is widened by the larger of those needs and the teach pass's (`beyond_at`): speed at a
 place the teach pass found rough grows by at most GROWTH per trial over what was last driven there
 (thesis 4: speed raised with experience). Not over the fastest pass ever: that pass's needs were
 replaced, and a calm crawl through a place the teach pass found rough vouched by the teach pass's speed.
@@ -121,19 +119,9 @@ class Prediction:
 @dataclass(frozen=True)
 class Beyond:
     """What a plan faster than a place's passes vouch for is widened by: from `speed_mps` on, `factors`
-    (kappa_j) instead of factors_at's; between `from_mps` (the speed the passes drove there) and
-    `speed_mps`, by a share of them growing in proportion to the speed (`share`)."""
+    (kappa_j) instead of factors_at's."""
     speed_mps: float = math.inf
     factors: np.ndarray | None = None
-    from_mps: float = math.inf
-
-    def share(self, v_mps: float) -> float:
-        """How much of the way from factors_at's to `factors` a plan at `v_mps` is widened (0..1)."""
-        if v_mps > self.speed_mps:
-            return 1.0
-        if v_mps <= self.from_mps:
-            return 0.0
-        return (v_mps - self.from_mps) / (self.speed_mps - self.from_mps)
 
 
 @dataclass(frozen=True)
@@ -221,7 +209,7 @@ class SpreadCalibration:
             return Beyond()
         seen = [self.speeds_before[i] for i in near if i in self.speeds_before]
         kappa = _widened(self.factors_at(s_m, v_mps), np.max(first, axis=0))
-        return Beyond(GROWTH * min(seen), kappa, min(seen)) if seen else Beyond(math.inf, kappa)
+        return Beyond(GROWTH * min(seen) if seen else math.inf, kappa)
 
     def observe(self, s_m: float, share: float, what: str = "corridor") -> None:
         """The estimate at route distance `s_m` took `share` of the corridor there (Corridor.share; inf:

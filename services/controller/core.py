@@ -53,7 +53,7 @@ class ControllerCore:
         factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
         cap = self.calibration.speed_cap_at(self.s_m, self.v_mps) if self.tracker.corridor is not None else None
         decision = self.tracker.step(now_s, loc, tick, self.builder.command_at, self.spread_factors,
-                                     (beyond.from_mps, beyond.speed_mps, factors), self.floors if self.floors.any() else None, cap)
+                                     (beyond.speed_mps, factors), self.floors if self.floors.any() else None, cap)
         self.builder.add_command(tick, decision.v_mps, decision.w_radps)
         self.v_mps = decision.v_mps
         self._observe_turn(decision)

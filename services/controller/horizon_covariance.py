@@ -58,16 +58,6 @@ class HorizonCovariance:
         """The same model with other floors (the calibration's at another plan speed)."""
         return replace(self, floors=floors if floors is not None and floors.any() else None)
 
-    def toward(self, other: HorizonCovariance, share: float) -> HorizonCovariance:
-        """This model with its factors `share` of the way (in variance) to `other`'s."""
-        if share <= 0.0:
-            return self
-        if share >= 1.0:
-            return other
-        n = max(len(self.factors) if self.factors is not None else 0, len(other.factors) if other.factors is not None else 0)
-        mine, theirs = self._kappa(n), other._kappa(n)
-        return replace(self, factors=np.sqrt(mine + share * (theirs - mine)))
-
     def localizer_part(self, X: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Route-frame standard deviations (K, 3) of x_1..x_K (measured along the route's `direction` (K,))
         that the localizer's covariance alone gives, carried rigidly along the plan X (K+1, 3): a heading

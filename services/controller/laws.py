@@ -48,11 +48,10 @@ class StepContext:
     # per horizon step, the factor on the predicted standard deviations from the online check of the
     # predicted spread (calibration.py); empty: none
     spread_factors: tuple[float, ...] = ()
-    # ... and those for a plan faster than the passes over this place vouch for, from which speed, and from
-    # which speed a plan is widened towards them (calibration.Beyond; empty: the same)
+    # ... and those for a plan faster than the passes over this place vouch for, from which speed
+    # (calibration.Beyond; empty: the same)
     spread_factors_beyond: tuple[float, ...] = ()
     spread_beyond_mps: float = float("inf")
-    spread_beyond_from_mps: float = float("inf")
     # the calibration's floors on each horizon step's model share of the predicted variance, lateral and
     # heading, by the plan's speed (calibration.floors_by_speed); None: none
     spread_floors: FloorsBySpeed | None = None

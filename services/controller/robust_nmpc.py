@@ -38,7 +38,6 @@ from typing import Callable
 import numpy as np
 
 from services.controller.band_reach import reach_capped, start_errors
-from services.controller.calibration import Beyond
 from services.controller.corridor import Corridor
 from services.controller.corridor_sqp import CorridorNLP, CorridorResult, Iterate, solve_corridor
 from services.controller.held_turn import held_note
@@ -49,7 +48,7 @@ from services.controller.minmax import MinMaxQP, boundary_costs, solve_minmax
 from services.controller.missed_variance import SpreadFloors
 from services.controller.nmpc import Plan, build_problem, crab_offsets, shifted
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import SPEED_LADDER, AskedModel, Rung, Widening, fastest_fitting_rung
+from services.controller.speed_ladder import SPEED_LADDER, AskedModel, Rung, fastest_fitting_rung
 from services.controller.sqp_qp import CorridorQP
 from services.controller.turn_accel import TurnLead
 from services.controller.steered_out import lateral_reach
@@ -91,12 +90,12 @@ def _capped(ctx: StepContext) -> tuple[StepContext, str]:
     return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), c)), note
 
 
-def _beyond(ctx: StepContext, cov: HorizonCovariance) -> Widening | None:
-    """How a rung is widened by the teach pass's needs at the place (calibration.beyond_at; None: nowhere)."""
+def _beyond(ctx: StepContext, cov: HorizonCovariance) -> tuple[float, HorizonCovariance] | None:
+    """From which speed a rung is widened by the teach pass's needs at the place, and `cov` so widened
+    (calibration.beyond_at; None: nowhere)."""
     if not ctx.spread_factors_beyond or not math.isfinite(ctx.spread_beyond_mps):
         return None
-    limits = Beyond(ctx.spread_beyond_mps, None, ctx.spread_beyond_from_mps)
-    return Widening(limits, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond)))
+    return ctx.spread_beyond_mps, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond))
 
 
 def _at_the_slowest(rung: Rung) -> bool:

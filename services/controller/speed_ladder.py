@@ -11,8 +11,7 @@ one that misses by least); the SQP then fine-tunes below the cap. Without it the
 the scheduled speed, the slack price dominates the cost and the plan flips between steps. Between a rung
 that fits and the one above it that does not, the ladder drives at the speed where the fit ends, if that
 fits (_between). A rung faster than the passes over the place vouch for is widened by the teach pass's
-needs there, in part between the speed they drove and GROWTH times it (calibration.beyond_at): its
-covariance model is the rung's own.
+needs there (calibration.beyond_at): its covariance model is the rung's own.
 
 The learned model is the local window drawn at the speed the law drives (thesis 5.3.2), whose speed bins
 end a bin or two above it. Once the law has slowed below the speeds its earlier trials drove at a place,
@@ -30,7 +29,6 @@ from typing import Callable
 
 import numpy as np
 
-from services.controller.calibration import Beyond
 from services.controller.horizon import HorizonProblem
 from services.controller.horizon_covariance import HorizonCovariance
 from services.controller.missed_variance import FloorsBySpeed
@@ -58,17 +56,6 @@ class Rung:
 
 
 @dataclass(frozen=True)
-class Widening:
-    """How a rung faster than the passes over the place vouch for is widened (calibration.Beyond): towards
-    `cov`, the covariance model with the teach pass's needs there, by `limits.share` of its top speed."""
-    limits: Beyond
-    cov: HorizonCovariance
-
-    def cov_at(self, v_max: float, cov: HorizonCovariance) -> HorizonCovariance:
-        return cov.toward(self.cov, self.limits.share(v_max))
-
-
-@dataclass(frozen=True)
 class AskedModel:
     """The learned model of the local window drawn at the asked speed, for testing the top rung when the
     law drives slower (module docstring): the window's GP, the step's problem with it (following the warm
@@ -76,19 +63,19 @@ class AskedModel:
     model: object
     problem: HorizonProblem
     cov: HorizonCovariance
-    beyond: Widening | None = None
+    beyond: tuple[float, HorizonCovariance] | None = None
 
 
 def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
-              a_out: np.ndarray, v_min: float, beyond: Widening | None = None,
+              a_out: np.ndarray, v_min: float, beyond: tuple[float, HorizonCovariance] | None = None,
               floors: FloorsBySpeed | None = None, scale: float | None = None) -> Rung:
     """The rung's own profile (at `scale` of the scheduled speeds instead of rung k's, if given), tested
     at its own speeds (and the calibration's floors at them): a rung "fitted" at the warm start's slower
     speeds would be driven at the rung's and fall back next step (two-step chatter)."""
     scale = SPEED_LADDER[k] if scale is None else scale
     vk = np.clip(scale * base.v, v_min, None)
-    if beyond is not None:
-        cov = beyond.cov_at(float(vk.max()), cov)
+    if beyond is not None and float(vk.max()) > beyond[0]:
+        cov = beyond[1]
     if floors is not None:
         cov = cov.with_floors(floors.at(float(vk.max())))
     p = base.following(vk)
@@ -114,15 +101,15 @@ def overflow(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> fl
 
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
                          cap: np.ndarray, alpha: float, w_rate_cap: float, last_index: int | None,
-                         a_out: np.ndarray, beyond: Widening | None = None,
+                         a_out: np.ndarray, beyond: tuple[float, HorizonCovariance] | None = None,
                          floors: FloorsBySpeed | None = None,
                          asked: Callable[[], AskedModel | None] | None = None) -> Rung:
     """From one rung faster than last step's (`last_index`; None: the top) down to the first that fits;
     where none does, the one that misses by least (`overflow`; the faster of equals). `cap` (K, 3): the
     most alpha * sigma may take of the corridor; `w_rate_cap`: the drive's turn-rate limit at any speed.
-    `a_out` (K, 9) receives the chosen rung's GP inputs. `beyond`: how a rung faster than the place's passes
-    vouch for is widened, by its top speed; `floors`: the calibration's, taken at each rung's speed;
-    `asked`: the asked speed's own model (built on demand; None where it is the driven speed's), for a climb that fails.
+    `a_out` (K, 9) receives the chosen rung's GP inputs. `beyond`: the speed above which a rung is tested
+    with the other covariance model; `floors`: the calibration's, taken at each rung's speed; `asked`: the
+    asked speed's own model (built on demand; None where it is the driven speed's), for a climb that fails.
 
     Slower is not always narrower: the prior's speed-independent terms, a place's remembered widening and
     what a crawl itself missed do not fade at a crawl, and a side slope whose slide acts per second needs
@@ -166,7 +153,7 @@ def _asked_top(asked: Callable[[], AskedModel | None], v: np.ndarray, w: np.ndar
 
 def _between(fits: Rung, miss: float, faster: tuple[float, float], base: HorizonProblem, v: np.ndarray,
              w: np.ndarray, cov: HorizonCovariance, cap: np.ndarray, alpha: float, w_rate_cap: float,
-             a_out: np.ndarray, beyond: Widening | None,
+             a_out: np.ndarray, beyond: tuple[float, HorizonCovariance] | None,
              floors: FloorsBySpeed | None) -> Rung:
     """Between a rung that fits and the one above that does not, the speed where the overflow, taken as
     linear between them, reaches BETWEEN_FIT, if it fits there (else the rung). Without it a rung above

@@ -175,13 +175,12 @@ class PathTracker:
     def step(self, now_s: float, loc: LocState | None, tick: int | None = None,
              command_at: Callable[[int], tuple[float, float] | None] | None = None,
              spread_factors: tuple[float, ...] = (),
-             spread_beyond: tuple[float, float, tuple[float, ...]] = (float("inf"), float("inf"), ()),
+             spread_beyond: tuple[float, tuple[float, ...]] = (float("inf"), ()),
              spread_floors: FloorsBySpeed | None = None, place_cap: PlaceCap | None = None) -> Decision:
         """`tick`: the robot tick this command will be applied at; `command_at(t)`: the command applied
         at tick t. With both, the law learns which commands were applied since the estimate's capture.
         `spread_factors`: the online calibration's factors on the predicted spread per step (calibration.py);
-        `spread_beyond`: from which speed a plan outruns the place's passes, from which it is widened in
-        full, and the factors then (calibration.Beyond);
+        `spread_beyond`: from which speed a plan outruns the place's passes, and the factors then;
         `spread_floors`: its floors per step under the model's share of the variance (lateral, heading),
         by the plan's speed; `place_cap`: the speed the latest pass's errors here allow a law that chooses
         its speed."""
@@ -241,8 +240,8 @@ class PathTracker:
                           prev_pose=prev_pose, w_limit=self.limits.w_limit(v), w_limit_at=self.limits.w_limit,
                           delayed_cmds=delayed, cmd_before_capture=before, xi_capture=xi_capture, xi_now=xi_now,
                           pose_cov=self.route_cov(last), corridor=self.corridor, v_max_mps=self.limits.v_max_mps,
-                          spread_factors=spread_factors, spread_beyond_from_mps=spread_beyond[0],
-                          spread_beyond_mps=spread_beyond[1], spread_factors_beyond=spread_beyond[2], spread_floors=spread_floors, loc_age_s=age,
+                          spread_factors=spread_factors, spread_beyond_mps=spread_beyond[0],
+                          spread_factors_beyond=spread_beyond[1], spread_floors=spread_floors, loc_age_s=age,
                           place_cap=place_cap)
         res, reason = self._run_law(ctx)
         if res.stop_reason:
