@@ -5,6 +5,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import tomllib
 
 import numpy as np
@@ -428,6 +429,13 @@ def test_robust_law_keeps_turn_rate_headroom_where_slowing_down_gives_it():
     skid = run(lambda v: w_max)
     assert skid.uncertainty.speed_scale < 1.0 and skid.v_mps <= 0.9 * w_max / kappa + 0.02
     assert skid.v_mps > 0.6                                    # one rung down, not the bottom of the ladder
+    # the status says why: the full-speed rung's turn rate, the route's, takes 1 / (0.9 x 1.05) of the headroom
+    said = re.search(r"slowed to ([0-9.]+) x the asked speed: at 1\.00 x the asked speed its turn rate would take "
+                     r"([0-9.]+) of its turn-rate headroom", skid.note)
+    assert said is not None, skid.note
+    assert float(said.group(1)) == pytest.approx(skid.uncertainty.speed_scale, abs=0.005)
+    assert float(said.group(2)) == pytest.approx(1.0 / (0.9 * 1.05), abs=0.03)
+    assert "slowed" not in free.note
     ackermann = run(lambda v: min(2.0, abs(v) * w_max))        # max curvature 1.05 x the route's
     assert ackermann.uncertainty.speed_scale == 1.0 and ackermann.v_mps > 0.95
 
@@ -550,6 +558,8 @@ def test_where_no_rung_fits_the_ladder_takes_the_one_that_misses_by_least_not_th
     chosen, misses, a_out, A = _ladder_where_nothing_fits(6.0)
     assert min(misses) > 1.0
     assert chosen.index == int(np.argmin(misses)) == SPEED_LADDER.index(0.58)
+    assert chosen.held_by.startswith("no rung fits; at 0.58 x the asked speed its ")
+    assert chosen.held_by.endswith(f"would take {misses[chosen.index]:.2f} of its band")
     assert misses[-1] > misses[chosen.index]
     np.testing.assert_allclose(a_out, A)
 

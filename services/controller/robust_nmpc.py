@@ -98,6 +98,11 @@ def _beyond(ctx: StepContext, cov: HorizonCovariance) -> tuple[float, HorizonCov
     return ctx.spread_beyond_mps, dataclasses.replace(cov, factors=np.asarray(ctx.spread_factors_beyond))
 
 
+def _slowed(rung: Rung | None) -> str:
+    """What the status says of a speed ladder held below the asked speed ("" where it was not)."""
+    return f"slowed to {rung.scale:.2f} x the asked speed: {rung.held_by}" if rung is not None and rung.held_by else ""
+
+
 def _at_the_slowest(rung: Rung) -> bool:
     """The ladder chose its slowest rung and the drive is already near its speed: a robot still fast was
     put there by one descent, and braking from speed in a corner is no safer than the plan (a Grizzly
@@ -427,4 +432,4 @@ class RCLBNMPCLaw:
                                                        speed_scale=1.0 if rung is None else rung.scale,
                                                        violation=it.violation, **_horizon_sigmas(sig, loc, raw),
                                                        spread_kappa=_kappa(cov)),
-                         note="; ".join(n for n in (held_note(nlp.problem.model), capped) if n))
+                         note="; ".join(n for n in (held_note(nlp.problem.model), capped, _slowed(rung)) if n))

@@ -53,6 +53,27 @@ class Rung:
     cov: HorizonCovariance  # the covariance model it was tested with
     scale: float            # the share of the scheduled speeds it drives: its rung's, or one between two
     asked_model: bool = False   # tested on the asked speed's own window (AskedModel), not the driven speed's
+    held_by: str = ""           # what kept the ladder from a faster rung (Misses.describe; "": nothing)
+
+
+@dataclass(frozen=True)
+class Misses:
+    """The shares of its room a rung's plan takes (`overflow`: the largest; <= 1 fits): the lateral and
+    heading alpha-sigma regions of their bands, its turn rates of the turn-rate headroom."""
+    lateral: float
+    heading: float
+    turn: float
+
+    @property
+    def worst(self) -> float:
+        return max(self.lateral, self.heading, self.turn)
+
+    def describe(self, scale: float) -> str:
+        """What held the ladder below a rung at `scale` of the asked speed that took these shares."""
+        what, share = max((("lateral 3-sigma region", self.lateral), ("heading 3-sigma region", self.heading),
+                           ("turn rate", self.turn)), key=lambda x: x[1])
+        room = "turn-rate headroom" if what == "turn rate" else "band"
+        return f"at {scale:.2f} x the asked speed its {what} would take {share:.2f} of its {room}"
 
 
 @dataclass(frozen=True)
@@ -89,14 +110,19 @@ def _try_rung(k: int, base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: H
     return Rung(k, p, vk, wk, Sig, sig, cov.widened(sig, loc), loc, cov, scale)
 
 
-def overflow(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> float:
-    """How far the rung misses fitting: the largest share of its band that alpha * sigma takes beyond the
-    first step, in either channel, or of the turn-rate headroom its turn rates take (<= 1: it fits)."""
+def misses(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> Misses:
+    """The shares of its band that alpha * sigma takes beyond the first step, lateral and heading, and of
+    the turn-rate headroom its turn rates take."""
     t = alpha * rung.sig[1:]
     room = np.maximum(cap[1:, 1:3], 1e-12)
-    spread = float(np.max(t[:, 1:3] / room))
+    spread = np.max(t[:, 1:3] / room, axis=0) if len(t) else np.zeros(2)
     turn = float(np.max(np.abs(rung.w))) / max(TURN_HEADROOM * w_rate_cap, 1e-12)
-    return max(spread, turn)
+    return Misses(float(spread[0]), float(spread[1]), turn)
+
+
+def overflow(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> float:
+    """How far the rung misses fitting: the largest share of its room it takes (`misses`; <= 1: it fits)."""
+    return misses(rung, cap, alpha, w_rate_cap).worst
 
 
 def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov: HorizonCovariance,
@@ -116,23 +142,25 @@ def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov
     a crab angle that grows as the robot slows. Where no rung fits, the bottom one is then not always the
     least unsafe."""
     first = 0 if last_index is None else max(last_index - 1, 0)
-    best, best_miss, best_a = None, math.inf, np.empty_like(a_out)
+    best, best_miss, best_a = None, Misses(math.inf, math.inf, math.inf), np.empty_like(a_out)
     faster: tuple[float, float] | None = None      # (scale, overflow) of the rung above, which did not fit
+    held: Misses | None = None                     # ... and the shares of its room it took
     for k in range(first, len(SPEED_LADDER)):
         rung = _try_rung(k, base, v, w, cov, a_out, base.s.v_min_mps, beyond, floors)
-        miss = overflow(rung, cap, alpha, w_rate_cap)
-        if miss <= 1.0:
-            return rung if faster is None else _between(rung, miss, faster, base, v, w, cov, cap, alpha, w_rate_cap,
-                                                        a_out, beyond, floors)
+        m = misses(rung, cap, alpha, w_rate_cap)
+        if m.worst <= 1.0:
+            chosen = rung if faster is None else _between(rung, m.worst, faster, base, v, w, cov, cap, alpha,
+                                                          w_rate_cap, a_out, beyond, floors)
+            return replace(chosen, held_by=held.describe(faster[0]) if held is not None else "")
         if k == first > 0 and asked is not None and (top := _asked_top(asked, v, w, cap, alpha, w_rate_cap, a_out,
                                                                        base.s.v_min_mps, floors)) is not None:
             return top
-        faster = (rung.scale, miss)
-        if miss < best_miss:
-            best, best_miss = rung, miss
+        faster, held = (rung.scale, m.worst), m
+        if m.worst < best_miss.worst:
+            best, best_miss = rung, m
             best_a[:] = a_out
     a_out[:] = best_a
-    return best
+    return replace(best, held_by="no rung fits; " + best_miss.describe(best.scale))
 
 
 def _asked_top(asked: Callable[[], AskedModel | None], v: np.ndarray, w: np.ndarray, cap: np.ndarray,
