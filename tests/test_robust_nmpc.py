@@ -21,7 +21,7 @@ from services.controller.horizon_covariance import HorizonCovariance, variance_m
 from services.controller.laws import StepContext
 from services.controller.nmpc import build_problem
 from services.controller.settings import NMPCSettings
-from services.controller.speed_ladder import SPEED_LADDER, AskedModel, _try_rung, fastest_fitting_rung, overflow
+from services.controller.speed_ladder import SPEED_LADDER, AskedModel, Misses, _try_rung, fastest_fitting_rung, overflow
 from services.controller.minmax import SIGNS
 from services.controller.missed_variance import MissedVariance
 from services.controller.robust_nmpc import MMLBNMPCLaw, RCLBNMPCLaw
@@ -560,6 +560,9 @@ def test_where_no_rung_fits_the_ladder_takes_the_one_that_misses_by_least_not_th
     assert chosen.index == int(np.argmin(misses)) == SPEED_LADDER.index(0.58)
     assert chosen.held_by.startswith("no rung fits; at 0.58 x the asked speed its ")
     assert chosen.held_by.endswith(f"would take {misses[chosen.index]:.2f} of its band")
+    # the region is the law's alpha-sigma one, whatever alpha is set to
+    assert Misses(1.2, 0.5, 0.1, alpha=2.0).describe(0.5) == \
+        "at 0.50 x the asked speed its lateral 2-sigma region would take 1.20 of its band"
     assert misses[-1] > misses[chosen.index]
     np.testing.assert_allclose(a_out, A)
 

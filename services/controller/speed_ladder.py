@@ -63,6 +63,7 @@ class Misses:
     lateral: float
     heading: float
     turn: float
+    alpha: float = 3.0
 
     @property
     def worst(self) -> float:
@@ -70,7 +71,8 @@ class Misses:
 
     def describe(self, scale: float) -> str:
         """What held the ladder below a rung at `scale` of the asked speed that took these shares."""
-        what, share = max((("lateral 3-sigma region", self.lateral), ("heading 3-sigma region", self.heading),
+        region = f"{self.alpha:g}-sigma region"
+        what, share = max(((f"lateral {region}", self.lateral), (f"heading {region}", self.heading),
                            ("turn rate", self.turn)), key=lambda x: x[1])
         room = "turn-rate headroom" if what == "turn rate" else "band"
         return f"at {scale:.2f} x the asked speed its {what} would take {share:.2f} of its {room}"
@@ -115,9 +117,9 @@ def misses(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> Miss
     the turn-rate headroom its turn rates take."""
     t = alpha * rung.sig[1:]
     room = np.maximum(cap[1:, 1:3], 1e-12)
-    spread = np.max(t[:, 1:3] / room, axis=0) if len(t) else np.zeros(2)
+    spread = np.max(t[:, 1:3] / room, axis=0)
     turn = float(np.max(np.abs(rung.w))) / max(TURN_HEADROOM * w_rate_cap, 1e-12)
-    return Misses(float(spread[0]), float(spread[1]), turn)
+    return Misses(float(spread[0]), float(spread[1]), turn, alpha)
 
 
 def overflow(rung: Rung, cap: np.ndarray, alpha: float, w_rate_cap: float) -> float:
