@@ -11,7 +11,9 @@ error (deg), how much the lateral error grows beyond its value at the stop (m, 0
 the distance rolled (m), and how much of the corridor the errors take (the larger of |lateral| over the
 half-width and |heading| over its limit: 1 on an edge) at the stop and at most afterwards.
 `left_after_stop` counts the stops inside the corridor at the stop and outside it afterwards: what a
-stop must not do. The grid is --speeds x --radii x --at. The controller has the corridor the services
+stop must not do. The grid is --speeds x --radii x --at. With `--slope DEG`, the corner lies on a side
+slope falling towards `--downhill` (world frame; the default, -90 deg, falls to the right of the
+straight, out of the left corner): its slide and its yaw act on the robot while it rolls. The controller has the corridor the services
 give it (`--corridor`, the scenario's default); the brake weighs its two limits (brake.py).
 Deterministic; prints, per preset, the stops with their medians, maxima and worst cases, and over all
 presets the largest turn and the stops that left, on its last line.
@@ -29,7 +31,7 @@ import numpy as np
 from bench.closed_loop import ClosedLoop
 from bench.report import run_and_print
 from common.robot import PRESETS
-from common.scenario import ConstraintsSection
+from common.scenario import ConstraintsSection, TerrainPatch
 from services.controller.actuator import ActuatorLag
 from services.controller.corridor import Corridor
 from services.controller.fl import FLGains
@@ -39,6 +41,7 @@ log = logging.getLogger("bench.stops")
 
 STRAIGHT_M = 15.0
 ARC_RAD = math.radians(110.0)
+SLOPE_MARGIN_M = 4.0       # the slope's patch reaches this far beyond the arc (its edge fades over 30 %)
 SETTLE_STEPS = 250          # 25 s at 10 Hz: every preset is at rest well before
 
 
@@ -76,12 +79,21 @@ def corner_route(radius_m: float) -> list[list[float]]:
     return [[0.0, 0.0], [STRAIGHT_M, 0.0]] + arc
 
 
+def corner_slope(radius_m: float, slope_deg: float, downhill_deg: float) -> list[TerrainPatch]:
+    """A side slope under the whole arc of corner_route and the straight's last metres (none at 0 deg)."""
+    if slope_deg <= 0.0:
+        return []
+    return [TerrainPatch(kind="side_slope", center=(STRAIGHT_M, radius_m), radius_m=radius_m + SLOPE_MARGIN_M,
+                         slope_deg=slope_deg, downhill_deg=downhill_deg)]
+
+
 def stops_on(preset: str, radius_m: float, speeds: list[float], at: list[float], seed: int,
-             corridor: tuple[float, float] | None = None) -> list[StopOutcome]:
+             corridor: tuple[float, float] | None = None, slope: tuple[float, float] = (0.0, -90.0)) -> list[StopOutcome]:
     """One teach pass of the corner route, then one repeat per (speed share, arc share); `corridor`:
-    (lateral m, heading deg), None for none."""
+    (lateral m, heading deg), None for none; `slope`: (deg, downhill deg) of a side slope under the corner."""
     robot = PRESETS[preset]
-    sim = ClosedLoop(corner_route(radius_m), preset=preset, seed=seed, teach_speed=min(0.8, 0.5 * robot.v_max_mps))
+    sim = ClosedLoop(corner_route(radius_m), terrain=corner_slope(radius_m, *slope), preset=preset, seed=seed,
+                     teach_speed=min(0.8, 0.5 * robot.v_max_mps))
     path = sim.teach()
     limits = None if corridor is None else Corridor(path.s, corridor[0], math.radians(corridor[1]))
     m = sim.identified()
@@ -139,13 +151,15 @@ def run_bench(args) -> dict:
     everything = []
     for preset in args.robots:
         outcomes = [o for radius in args.radii
-                    for o in stops_on(preset, radius, args.speeds, args.at, args.seed, args.corridor)]
+                    for o in stops_on(preset, radius, args.speeds, args.at, args.seed, args.corridor,
+                                      (args.slope, args.downhill))]
         result["presets"][preset] = summary(outcomes)
         everything += outcomes
     result["heading_turned_deg_max"] = round(max(o.heading_turned_deg for o in everything), 2)
     result["stops"] = len(everything)
     result["left_after_stop"] = sum(p["left_after_stop"] for p in result["presets"].values())
     result["corridor"] = list(args.corridor) if args.corridor else None
+    result["slope_deg"], result["downhill_deg"] = args.slope, args.downhill
     return result
 
 
@@ -161,10 +175,14 @@ def main(argv: list[str] | None = None) -> int:
     default = ConstraintsSection()
     parser.add_argument("--corridor", nargs=2, type=float, default=[default.lateral_m, default.heading_deg],
                         metavar=("LATERAL_M", "HEADING_DEG"), help="the controller's corridor; 0 0: none")
+    parser.add_argument("--slope", type=float, default=0.0, metavar="DEG",
+                        help="a side slope of this many degrees under the corner (0: flat)")
+    parser.add_argument("--downhill", type=float, default=-90.0, metavar="DEG",
+                        help="where the slope falls to, world frame (-90: out of the left corner at its start)")
     args = parser.parse_args(argv)
     if not all(0.0 < s <= 1.0 for s in args.speeds) or not all(0.0 <= a <= 1.0 for a in args.at) \
-            or not all(r > 0.0 for r in args.radii) or min(args.corridor) < 0.0:
-        parser.error("speeds in (0, 1], --at in [0, 1], radii > 0, a corridor >= 0")
+            or not all(r > 0.0 for r in args.radii) or min(args.corridor) < 0.0 or not 0.0 <= args.slope < 45.0:
+        parser.error("speeds in (0, 1], --at in [0, 1], radii > 0, a corridor >= 0, a slope in [0, 45) deg")
     args.corridor = tuple(args.corridor) if min(args.corridor) > 0.0 else None
     logging.basicConfig(level=logging.INFO, format="[bench.stops] %(message)s", stream=sys.stderr)
     log.setLevel(logging.INFO)      # progress, also under lbc's root logger at WARNING
