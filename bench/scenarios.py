@@ -34,6 +34,9 @@ Figures per family, from each run's summary.json (trial k of a run: its k-th ent
 - `last_trial_vs_learning_off_median` (lb-nmpc, ilc): median over scenarios of 1 - max_lateral_m of
   the last trial / that of the learning-off run's last trial: what learning did where the route itself
   changes from trial to trial (ruts deepen every pass), which the gain over trial 1 mixes in;
+- `time_lost_share`: by cause, the seconds summary.json's `time_lost_s` counts over every trial, as a share
+  of their travel time: what held the robots below the asked speeds (RC-LB-NMPC's speed ladder by the check
+  that failed, the place cap, the turn cap, the end of the route; "none": the drive catching up);
 - `scenarios`: the same per scenario; lb-nmpc and ilc add `learning_off`, these figures for their
   learning-off runs, and lb-nmpc-scheduled `guard_off`, for its runs under the plain thesis rule.
 `--family NAME` (repeatable) runs only the draws of those families, scenario i being the same draw as
@@ -114,6 +117,7 @@ class TrialResult:
     ideal_travel_s: float | None = None     # route length / the trial's speed setpoint (its mean if scheduled)
     outside_3sigma: float | None = None     # outside_3sigma_fraction (laws with a predicted spread)
     unanswered_ticks: int = 0               # stepped by the lockstep bridge without their answer
+    time_lost_s: dict[str, float] = field(default_factory=dict)   # summary.json's, by cause
 
     @classmethod
     def from_summary(cls, entry: dict) -> "TrialResult":
@@ -128,7 +132,8 @@ class TrialResult:
                    end_reason=str(entry.get("end_reason", "")),
                    ideal_travel_s=float(length) / float(speed) if length and speed and speed > 0 else None,
                    outside_3sigma=None if outside is None else float(outside),
-                   unanswered_ticks=int(entry.get("unanswered_ticks") or 0))
+                   unanswered_ticks=int(entry.get("unanswered_ticks") or 0),
+                   time_lost_s={str(k): float(v) for k, v in (entry.get("time_lost_s") or {}).items()})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -188,6 +193,7 @@ class FamilyStats:
     failed_scenarios: list[Failure] = field(default_factory=list)
     scenarios: list[ScenarioResult] = field(default_factory=list)
     last_trial_vs_learning_off_median: float | None = None
+    time_lost_share: dict[str, float] = field(default_factory=dict)   # of all trials' travel time, by cause
 
 
 # --- scenarios and runs ---------------------------------------------------------------------------
@@ -357,6 +363,17 @@ def _stops(outcomes: Sequence[RunOutcome], own: bool) -> list[Stop]:
             if not t.completed and t.end_reason.startswith(SELF_STOP) == own]
 
 
+def _time_lost_share(trials: list[TrialResult]) -> dict[str, float]:
+    """The share of the trials' travel time each cause held the robot below its asked speed (causes that
+    cost something only)."""
+    total = sum(t.travel_time_s for t in trials)
+    lost: dict[str, float] = {}
+    for t in trials:
+        for k, v in t.time_lost_s.items():
+            lost[k] = lost.get(k, 0.0) + v
+    return {k: round(v / total, 4) for k, v in lost.items() if v > 0.0} if total > 0 else {}
+
+
 def family_stats(outcomes: Sequence[RunOutcome], learning_off: dict[int, RunOutcome] | None = None) -> FamilyStats:
     """A family's figures; `learning_off`: its learning-off twins by scenario index."""
     per = [scenario_result(o, (learning_off or {}).get(o.job.index)) for o in outcomes]
@@ -378,7 +395,8 @@ def family_stats(outcomes: Sequence[RunOutcome], learning_off: dict[int, RunOutc
         other_stops=_stops(outcomes, own=False),
         failed_scenarios=[Failure(scenario=o.job.name, reason=o.error) for o in outcomes if o.error],
         scenarios=per,
-        last_trial_vs_learning_off_median=_median([s.last_trial_vs_learning_off for s in per]))
+        last_trial_vs_learning_off_median=_median([s.last_trial_vs_learning_off for s in per]),
+        time_lost_share=_time_lost_share([t for o in outcomes for t in o.trials]))
 
 
 def bench_result(outcomes: Sequence[RunOutcome], n: int, seed: int, wall_s: float) -> dict:

@@ -163,12 +163,18 @@ class VelocityCommand(Message):
 
 # stopping: braking along the route after a safety stop (the command still steers), then stopped
 ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopping", "stopped", "finished", "error"]
+# what held a tracking step's speed command below the asked speed: "" nothing; RC-LB-NMPC's speed ladder by the
+# check its next faster rung failed ("ladder-lateral", "-heading", "-turn"; "-no-fit": no rung fits); the place
+# cap from the latest pass's share of the corridor or of the steering margin; the turn the robot can make
+# along the route (turn_speed.py); the robot's top speed; the slow-down into the end of the route
+SpeedCause = Literal["", "ladder-lateral", "ladder-heading", "ladder-turn", "ladder-no-fit", "place-corridor",
+                     "place-steering", "turn-cap", "robot-limit", "route-end"]
 
 
 @dataclass(frozen=True, kw_only=True)
 class ControllerStatus(Message):
     """One per control step: what the controller saw, decided and how long it took."""
-    SCHEMA_VERSION = 5
+    SCHEMA_VERSION = 6
     stamp_s: float
     tick: int
     trial: int
@@ -215,6 +221,8 @@ class ControllerStatus(Message):
     # and the skid-steer's turn lost to skidding the controller has learned (services/controller/turn_speed.py)
     turn_cap_mps: float
     turn_loss_per_mps2: float
+    # v6: what held the speed command below the asked speed this step (SpeedCause; "" nothing)
+    speed_held_by: SpeedCause
 
 
 @dataclass(frozen=True, kw_only=True)

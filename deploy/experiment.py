@@ -34,7 +34,7 @@ from common.scenario import Scenario, load_scenario
 from deploy.configs import service_configs, write_service_configs
 from deploy.launcher import LaunchError, Launcher
 from deploy.learned import predict_trial
-from deploy.metrics import TrialRecord, loop_figures, outside_3sigma_fraction, trial_metrics, truth_series
+from deploy.metrics import TrialRecord, loop_figures, outside_3sigma_fraction, time_lost, trial_metrics, truth_series
 from deploy.recorder import McapRecorder
 from deploy.ros2_export import Ros2Export
 from deploy.router import free_port
@@ -627,6 +627,9 @@ def _trial_summary(sc: Scenario, exp: Experiment, rec: TrialRecord, series, d, h
     m["spread_factor_1s"] = stepped[-1].spread_factors[-1] if stepped and stepped[-1].spread_factors else None
     m.update(turn_cap_figures(stepped))
     nominal, learned = d.rmse()
+    schedule = np.asarray(exp.schedules[rec.trial].v_mps) if rec.trial in exp.schedules else None
+    m.update(time_lost(rec, (lambda i: float(schedule[min(i, len(schedule) - 1)])) if schedule is not None
+                       else (lambda i: rec.speed_mps)))
     if rec.trial in exp.schedules:
         v = np.asarray(exp.schedules[rec.trial].v_mps)
         m.update({"schedule_version": exp.schedules[rec.trial].version, "scheduled_speed_mean_mps": float(v.mean()),

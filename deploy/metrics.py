@@ -6,12 +6,18 @@ route polyline); the controller's own estimate is reported beside them under `*_
 from __future__ import annotations
 
 import math
+import typing
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
-from common.messages import ControllerStatus, LocState, TruthPose
+from common.messages import ControllerStatus, LocState, SpeedCause, TruthPose
 from common.path import Path
+
+# time_lost's keys: the causes of a tracking step (messages.SpeedCause, "" as "none": commanded the asked
+# speed, the drive still following), a step holding its last command, and a safety stop's braking
+TIME_LOST_KEYS = ("none",) + tuple(c for c in typing.get_args(SpeedCause) if c) + ("holding", "stopping")
 
 
 @dataclass
@@ -162,6 +168,25 @@ def trial_metrics(path: Path, rec: TrialRecord, series: TrialSeries, lateral_lim
         "unanswered_ticks": rec.unanswered_ticks,
         "wall_time_s": rec.wall_s,
     }
+
+
+def time_lost(rec: TrialRecord, asked_mps: Callable[[int], float]) -> dict:
+    """Where a trial's travel time went beyond its asked speed's: each controller step's period less the
+    time the asked speed (`asked_mps(vertex)`) would have taken over the distance it covered, summed by
+    what held its command (TIME_LOST_KEYS), over the same window as travel_time_s. `travel_time_ideal_s`:
+    the covered distance at the asked speeds; the losses add up to about travel_time_s less it."""
+    stepped = rec.stepped_status()
+    finish = next((i for i, s in enumerate(stepped) if s.state == "finished"), len(stepped) - 1)
+    lost = dict.fromkeys(TIME_LOST_KEYS, 0.0)
+    ideal = 0.0
+    for a, b in zip(stepped[:finish], stepped[1:finish + 1]):
+        ds = max(0.0, b.distance_m - a.distance_m)
+        at = ds / max(asked_mps(a.vertex), 1e-3)
+        ideal += at
+        key = (a.speed_held_by or "none") if a.state == "tracking" else \
+            "holding" if a.state == "holding" else "stopping" if a.state in ("stopping", "stopped") else "none"
+        lost[key] += (b.stamp_s - a.stamp_s) - at
+    return {"travel_time_ideal_s": ideal, "time_lost_s": lost}
 
 
 def outside_3sigma_fraction(route: Path, truth_path: Path, rec: TrialRecord) -> float | None:

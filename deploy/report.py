@@ -24,7 +24,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 from common.path import Path  # noqa: E402
 from common.scenario import Scenario  # noqa: E402
 from deploy.learned import DisturbanceSeries  # noqa: E402
-from deploy.metrics import TrialSeries  # noqa: E402
+from deploy.metrics import TIME_LOST_KEYS, TrialSeries  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,8 @@ def _fmt(v) -> str:
         return f"{float(v):.4g}"
     if isinstance(v, (list, tuple)):
         return ", ".join(_fmt(x) for x in v)
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_fmt(x)}" for k, x in v.items() if x)
     return str(v)
 
 
@@ -194,6 +196,31 @@ def _plot_speed(series: list[TrialSeries], norm: Normalize, path: Path, schedule
         ax.set(xlabel="distance along route (m)", ylabel="speed (m/s)")
         ax.grid(alpha=0.3)
         _trial_colorbar(fig, [ax], norm)
+        return _png(fig)
+
+
+SHOWN_LOSS_S = 0.05     # a cause that cost no trial more than this is left out of the legend
+
+
+def _plot_time_lost(trials: list[dict]) -> str:
+    """Per trial, a bar of its travel time: the asked speed's share, then the seconds each cause held the
+    robot below it (summary.json time_lost_s)."""
+    with _figure(size=(10, 0.45 * max(len(trials), 2) + 1.6)) as (fig, (ax,)):
+        rows = [t for t in trials if isinstance(t.get("time_lost_s"), dict)]
+        causes = [k for k in TIME_LOST_KEYS if any(t["time_lost_s"].get(k, 0.0) > SHOWN_LOSS_S for t in rows)]
+        y = np.arange(len(rows))
+        left = np.array([t.get("travel_time_ideal_s") or 0.0 for t in rows])
+        ax.barh(y, left, color="lightgrey", label="at the asked speed")
+        colours = plt.get_cmap("tab10")
+        for i, k in enumerate(causes):
+            width = np.array([max(t["time_lost_s"].get(k, 0.0), 0.0) for t in rows])
+            ax.barh(y, width, left=left, color=colours(i % 10), label="none (drive catching up)" if k == "none" else k)
+            left = left + width
+        ax.set_yticks(y, [f"trial {t.get('trial')}" for t in rows])
+        ax.invert_yaxis()
+        ax.set(xlabel="travel time (s)")
+        ax.grid(alpha=0.3, axis="x")
+        ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
         return _png(fig)
 
 
@@ -422,6 +449,13 @@ def write_report(out_path: str | pathlib.Path, scenario: Scenario, path: Path, s
         _section("Speed", "Truth speed (solid), commanded speed (dashed) and, with the speed scheduler, its "
                  "schedule (dotted), m/s, against distance along the route (m), coloured by trial.",
                  _plot_speed(series, norm, route or path, schedules or {})),
+        *([_section("Where the time went", "Per trial, the travel time the asked (or scheduled) speed would have "
+                 "taken over the distance covered (grey), then the seconds lost beyond it by what held the "
+                 "speed command below the asked one: RC-LB-NMPC's speed ladder by the check its next faster "
+                 "rung failed, the place cap from the latest pass, the robot's turn or top speed, the slow-down "
+                 "into the end; \"none\": commanded the asked speed while the drive was still catching up "
+                 "(summary.json time_lost_s).", _plot_time_lost(trials))]
+          if any(isinstance(t.get("time_lost_s"), dict) for t in trials) else []),
         *([_section("Localization", "Matched features per frame (inliers against the taught keyframe) "
                     "against distance along the route (m), coloured by trial; crosses at zero mark frames not "
                     "refined against the map (visual odometry only, or lost).", _plot_features(series, norm))]

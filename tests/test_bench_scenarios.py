@@ -266,7 +266,8 @@ def test_travel_against_the_requested_speed_and_calibration_figures(tmp_path):
         entries = [{"trial": k, "completed": True, "max_lateral_m": 0.1, "max_heading_rad": 0.05,
                     "travel_time_s": travel, "constraint_violations": 0, "end_reason": "end of route",
                     "route_length_m": 100.0, "speed_setpoint_mps": 2.0, "outside_3sigma_fraction": out,
-                    "unanswered_ticks": 2 * (name == "b")}
+                    "unanswered_ticks": 2 * (name == "b"),
+                    "time_lost_s": {"none": 1.0, "ladder-lateral": travel - 51.0, "place-corridor": 0.0}}
                    for k, (travel, out) in enumerate(trials, start=1)]
         (job.run_dir / "summary.json").write_text(json.dumps({"trials": entries}))
         return scenarios.read_outcome(job, 0, 10.0)
@@ -280,10 +281,13 @@ def test_travel_against_the_requested_speed_and_calibration_figures(tmp_path):
     assert rc["outside_3sigma_median"] == pytest.approx(0.008) and rc["outside_3sigma_max"] == pytest.approx(0.02)
     assert rc["outside_3sigma_over_1pct"] == 2
     assert [s["outside_3sigma_max"] for s in rc["scenarios"]] == [pytest.approx(0.02), pytest.approx(0.012)]
+    # 380 s of travel: 5 x 1 s with the drive catching up, 380 - 5 x 51 s held by the ladder, nothing by the cap
+    assert rc["time_lost_share"] == {"none": pytest.approx(5 / 380, abs=1e-4),
+                                     "ladder-lateral": pytest.approx((380 - 5 * 51) / 380, abs=1e-4)}
     (tmp_path / "old").mkdir()
     lb = scenarios.bench_result(_hand_made(tmp_path / "old"), n=7, seed=3, wall_s=100.0)["lb-nmpc"]
     assert lb["travel_over_ideal_median"] is None and lb["outside_3sigma_max"] is None   # older summaries
-    assert lb["outside_3sigma_over_1pct"] == 0
+    assert lb["outside_3sigma_over_1pct"] == 0 and lb["time_lost_share"] == {}
 
 
 # --- end to end ---------------------------------------------------------------------------------------

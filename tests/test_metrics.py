@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from common.path import Path
-from deploy.metrics import TrialRecord, outside_3sigma_fraction
+from deploy.metrics import TIME_LOST_KEYS, TrialRecord, outside_3sigma_fraction, time_lost
 
 
 def _loop_with_a_crab_at_its_end(radius_m=5.0, n=126, crab_rad=0.1, crab_vertices=12) -> Path:
@@ -52,3 +52,26 @@ def test_a_prediction_off_by_more_than_3_sigma_is_counted():
                      pred_y_m=[pred[k + 1][1]], pred_theta_rad=[pred[k + 1][2]],
                      pred_sigma_lat_m=[0.005], pred_sigma_head_rad=[0.01]) for k in range(len(poses) - 1)]
     assert outside_3sigma_fraction(route, route, rec) == pytest.approx(2 / 39)
+
+
+def test_time_lost_is_split_by_what_held_the_speed_and_adds_up_to_the_travel_beyond_the_asked_speed():
+    """A 1 m/s trial: 10 steps at 1 m/s, 10 held by the ladder's lateral check at 0.5 m/s, 5 by the place
+    cap at 0.25 m/s, then the end of the route. Worked by hand: the ladder's steps lose 10 x (0.1 - 0.05)
+    = 0.5 s, the place cap's 5 x (0.1 - 0.025) = 0.375 s; the ideal is the 1.625 m covered at 1 m/s."""
+    speeds = [1.0] * 10 + [0.5] * 10 + [0.25] * 5
+    causes = [""] * 10 + ["ladder-lateral"] * 10 + ["place-corridor"] * 5
+    s, rec = 0.0, TrialRecord(trial=1, speed_mps=1.0)
+    rec.truth = [At(tick=k) for k in range(len(speeds) + 2)]
+    for k, (v, c) in enumerate(zip(speeds, causes)):
+        rec.status.append(At(tick=k, stamp_s=0.1 * k, state="tracking", vertex=0, distance_m=s, speed_held_by=c))
+        s += 0.1 * v
+    rec.status.append(At(tick=len(speeds), stamp_s=0.1 * len(speeds), state="finished", vertex=0, distance_m=s,
+                         speed_held_by=""))
+    out = time_lost(rec, lambda vertex: 1.0)
+    lost = out["time_lost_s"]
+    assert set(lost) == set(TIME_LOST_KEYS)
+    assert lost["none"] == pytest.approx(0.0, abs=1e-12)
+    assert lost["ladder-lateral"] == pytest.approx(0.5)
+    assert lost["place-corridor"] == pytest.approx(0.375)
+    assert out["travel_time_ideal_s"] == pytest.approx(1.625)
+    assert out["travel_time_ideal_s"] + sum(lost.values()) == pytest.approx(0.1 * len(speeds))

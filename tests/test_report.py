@@ -165,3 +165,16 @@ def test_a_patch_drawn_over_another_keeps_its_legend_colour():
     for kind in ("slip", "side_slope"):     # the inner patch's area shows its own legend colour, no blend
         want = np.round(np.array(_pastel(_TERRAIN_COLOURS[kind]))[::-1] * 255)
         assert np.count_nonzero(np.abs(bgr - want).max(axis=2) <= 2) > 2000, kind
+
+
+def test_where_the_time_went_is_drawn_from_time_lost_s_and_listed_in_the_table(tmp_path):
+    path = make_path()
+    series = [make_series(path, 1), make_series(path, 2)]
+    lost = [{"none": 0.8, "ladder-lateral": 12.5, "place-corridor": 0.0}, {"none": 0.7, "ladder-lateral": 3.0,
+                                                                          "place-corridor": 4.25}]
+    entries = [{**entry(s), "travel_time_ideal_s": 20.0, "time_lost_s": t} for s, t in zip(series, lost)]
+    page = render(tmp_path, series, entries)
+    assert "<h2>Where the time went</h2>" in page
+    assert page.count("data:image/png;base64,") == N_IMAGES + 1
+    table = page[page.index("<h2>Trials</h2>"):]
+    assert "none 0.8, ladder-lateral 12.5" in table and "ladder-lateral 3, place-corridor 4.25" in table

@@ -435,7 +435,8 @@ def test_robust_law_keeps_turn_rate_headroom_where_slowing_down_gives_it():
     assert said is not None, skid.note
     assert float(said.group(1)) == pytest.approx(skid.uncertainty.speed_scale, abs=0.005)
     assert float(said.group(2)) == pytest.approx(1.0 / (0.9 * 1.05), abs=0.03)
-    assert "slowed" not in free.note
+    assert skid.held_by == "ladder-turn"                       # and as a name, for summary.json's time_lost_s
+    assert "slowed" not in free.note and free.held_by == ""
     ackermann = run(lambda v: min(2.0, abs(v) * w_max))        # max curvature 1.05 x the route's
     assert ackermann.uncertainty.speed_scale == 1.0 and ackermann.v_mps > 0.95
 
@@ -558,11 +559,13 @@ def test_where_no_rung_fits_the_ladder_takes_the_one_that_misses_by_least_not_th
     chosen, misses, a_out, A = _ladder_where_nothing_fits(6.0)
     assert min(misses) > 1.0
     assert chosen.index == int(np.argmin(misses)) == SPEED_LADDER.index(0.58)
-    assert chosen.held_by.startswith("no rung fits; at 0.58 x the asked speed its ")
+    assert chosen.held_by.startswith("no rung fits; at 0.58 x the asked speed its ") and chosen.cause == "no-fit"
     assert chosen.held_by.endswith(f"would take {misses[chosen.index]:.2f} of its band")
     # the region is the law's alpha-sigma one, whatever alpha is set to
     assert Misses(1.2, 0.5, 0.1, alpha=2.0).describe(0.5) == \
         "at 0.50 x the asked speed its lateral 2-sigma region would take 1.20 of its band"
+    assert [Misses(*m).cause for m in ((1.2, 0.5, 0.1), (0.2, 0.5, 0.1), (0.2, 0.5, 0.9))] == \
+        ["lateral", "heading", "turn"]
     assert misses[-1] > misses[chosen.index]
     np.testing.assert_allclose(a_out, A)
 

@@ -40,7 +40,7 @@ def status(trial: int, i: int, state: str, lateral_m: float, w: float = 0.1, v: 
         window_experiences=0, hyper_version=0, w_ff_radps=0.0, pred_x_m=[], pred_y_m=[], pred_theta_rad=[],
         sigma_lat_m=0.0, sigma_head_rad=0.0, solver_status="", spread_factors=[], pred_sigma_lat_m=[],
         pred_sigma_head_rad=[], learning_off_since_s=-1.0, learning_note="", step_late_ms=0.0, turn_cap_mps=0.0,
-        turn_loss_per_mps2=0.0)
+        turn_loss_per_mps2=0.0, speed_held_by="")
 
 
 class Rig:

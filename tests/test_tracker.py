@@ -260,6 +260,27 @@ def test_slows_into_the_end_and_finishes():
     assert tr.step(0.3, loc(0.3, x=2.0)).state == "finished"   # and stays finished
 
 
+class SlowingLaw:
+    """FL's turn at a slower speed of its own, saying why (as RC-LB-NMPC's speed ladder does)."""
+    name = "slowing"
+
+    def angular(self, ctx):
+        return LawResult(FLLaw(FLGains()).angular(ctx).w_radps, v_mps=0.3, held_by="ladder-heading")
+
+
+def test_each_step_says_what_held_its_speed_below_the_asked_one():
+    """The asked speed: nothing; the slow-down into the end: "route-end"; the robot's top speed:
+    "robot-limit"; a law that drives slower: its own cause."""
+    tr = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=1.0, stop_decel_mps2=0.4)
+    assert tr.step(0.0, loc(0.0, x=2.0, y=0.0)).held_by == ""
+    assert tr.step(0.1, loc(0.1, x=9.5, y=0.0)).held_by == "route-end"
+    fast = PathTracker(PATH, FLLaw(FLGains()), LIMITS, speed_mps=LIMITS.v_max_mps + 1.0)
+    assert fast.step(0.0, loc(0.0, x=2.0, y=0.0)).held_by == "robot-limit"
+    slowed = PathTracker(PATH, SlowingLaw(), LIMITS, speed_mps=1.0)
+    d = slowed.step(0.0, loc(0.0, x=2.0, y=0.0))
+    assert d.v_mps == pytest.approx(0.3) and d.held_by == "ladder-heading"
+
+
 def test_loop_route_is_repeated_once_round_without_jumping_to_its_end():
     sim = ClosedLoop([[0, 0], [12, 0], [12, 8], [0, 8]], preset="husky", seed=5, loop=True)
     path = sim.teach()

@@ -107,6 +107,7 @@ class LawResult:
     uncertainty: UncertaintyReport | None = None
     feedforward_radps: float = 0.0        # ILC: the learned part of w_radps
     note: str = ""                        # what the law did unlike its usual step (the status's reason)
+    held_by: str = ""                     # where v_mps is below the asked speed: why (messages.SpeedCause)
 
 
 class SteeringLaw(Protocol):

@@ -525,7 +525,8 @@ class ControllerService(Service):
             learning_off_since_s=self.learning_off_since_s, learning_note=self.learning_note,
             step_late_ms=self.step_late_ms,
             turn_cap_mps=self.core.tracker.turn_cap_at(d.distance_m) if self.core is not None else 0.0,
-            turn_loss_per_mps2=self.core.tracker.turn_loss.per_mps2 if self.core is not None else 0.0)
+            turn_loss_per_mps2=self.core.tracker.turn_loss.per_mps2 if self.core is not None else 0.0,
+            speed_held_by=d.held_by)
 
     def _outbox(self, node: Node, robot: str, st: StoreClientConfig) -> ExperienceOutbox:
         """Pending experiences are kept on disk too (with a data_dir): a controller that dies while the

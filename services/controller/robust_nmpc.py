@@ -78,16 +78,18 @@ def _floors_at(ctx: StepContext, v: np.ndarray) -> SpreadFloors | None:
     return None if ctx.spread_floors is None else ctx.spread_floors.at(float(np.max(v)))
 
 
-def _capped(ctx: StepContext) -> tuple[StepContext, str]:
-    """The step's context with its speeds held to the place's cap (calibration.speed_cap_at), and what the
-    status says of it ("" where it does not bind)."""
+def _capped(ctx: StepContext) -> tuple[StepContext, str, str]:
+    """The step's context with its speeds held to the place's cap (calibration.speed_cap_at), what the
+    status says of it and its SpeedCause ("" where it does not bind)."""
     cap = ctx.place_cap
     if cap is None or not math.isfinite(cap.speed_mps):
-        return ctx, ""
+        return ctx, "", ""
     c, f = cap.speed_mps, ctx.speed_at
-    note = f"held to {c:.2f} m/s: the last pass here took {cap.share:.0%} of the {cap.what} at {cap.at_m:.0f} m" \
-        if c < ctx.v_mps else ""
-    return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), c)), note
+    note, cause = "", ""
+    if c < ctx.v_mps:
+        note = f"held to {c:.2f} m/s: the last pass here took {cap.share:.0%} of the {cap.what} at {cap.at_m:.0f} m"
+        cause = "place-corridor" if cap.what == "corridor" else "place-steering"
+    return dataclasses.replace(ctx, v_mps=min(ctx.v_mps, c), speed_at=lambda s: min(f(s), c)), note, cause
 
 
 def _beyond(ctx: StepContext, cov: HorizonCovariance) -> tuple[float, HorizonCovariance] | None:
@@ -225,7 +227,7 @@ class RCLBNMPCLaw:
         why = corridor.contains(ctx.s_m, ctx.e_lat_m, ctx.e_head_rad, _estimate_sigmas(ctx))
         if why:
             return LawResult(0.0, v_mps=0.0, stop_reason=f"{why}: stopped")
-        ctx, capped = _capped(ctx)
+        ctx, capped, capped_by = _capped(ctx)
         gp = self.model_for(dataclasses.replace(ctx, v_mps=self._window_speed(ctx)))
         probes = () if self.last_plan is None else (shifted(self.last_step.result.iterate.w),)
         base, _ = build_problem(ctx, s, dt, gp, probes)
@@ -266,7 +268,7 @@ class RCLBNMPCLaw:
         if rung is not None and (reason := self._crawl_stop(nlp, result.iterate, rung, base)):
             return LawResult(0.0, v_mps=0.0, predicted=result.iterate.X[1:], stop_reason=reason,
                              uncertainty=UncertaintyReport(float(sig[0, 1]), float(sig[0, 2])))
-        return self._report(nlp, start, result, gp is not None, rung, cov, capped)
+        return self._report(nlp, start, result, gp is not None, rung, cov, capped, capped_by)
 
     @staticmethod
     def _start(nlp: CorridorNLP, v: np.ndarray, w: np.ndarray, A: np.ndarray) -> Iterate:
@@ -420,7 +422,7 @@ class RCLBNMPCLaw:
         return cov.widened(raw, loc), loc, raw
 
     def _report(self, nlp: CorridorNLP, start: Iterate, result: CorridorResult, learned: bool,
-                rung: Rung | None, cov: HorizonCovariance, capped: str = "") -> LawResult:
+                rung: Rung | None, cov: HorizonCovariance, capped: str = "", capped_by: str = "") -> LawResult:
         it = result.iterate
         sig, loc, raw = (np.zeros_like(it.sig),) * 3 if rung is None else self._plan_spread(nlp, it, cov)
         cost = 0.5 * float(it.r @ it.r)
@@ -432,4 +434,5 @@ class RCLBNMPCLaw:
                                                        speed_scale=1.0 if rung is None else rung.scale,
                                                        violation=it.violation, **_horizon_sigmas(sig, loc, raw),
                                                        spread_kappa=_kappa(cov)),
-                         note="; ".join(n for n in (held_note(nlp.problem.model), capped, _slowed(rung)) if n))
+                         note="; ".join(n for n in (held_note(nlp.problem.model), capped, _slowed(rung)) if n),
+                         held_by=f"ladder-{rung.cause}" if rung is not None and rung.cause else capped_by)

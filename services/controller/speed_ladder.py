@@ -54,6 +54,7 @@ class Rung:
     scale: float            # the share of the scheduled speeds it drives: its rung's, or one between two
     asked_model: bool = False   # tested on the asked speed's own window (AskedModel), not the driven speed's
     held_by: str = ""           # what kept the ladder from a faster rung (Misses.describe; "": nothing)
+    cause: str = ""             # ... as a name: "lateral", "heading", "turn" or "no-fit" (Misses.cause)
 
 
 @dataclass(frozen=True)
@@ -69,12 +70,17 @@ class Misses:
     def worst(self) -> float:
         return max(self.lateral, self.heading, self.turn)
 
+    @property
+    def cause(self) -> str:
+        """The check that took the largest share: "lateral", "heading" or "turn"."""
+        return max((("lateral", self.lateral), ("heading", self.heading), ("turn", self.turn)), key=lambda x: x[1])[0]
+
     def describe(self, scale: float) -> str:
         """What held the ladder below a rung at `scale` of the asked speed that took these shares."""
-        region = f"{self.alpha:g}-sigma region"
-        what, share = max(((f"lateral {region}", self.lateral), (f"heading {region}", self.heading),
-                           ("turn rate", self.turn)), key=lambda x: x[1])
-        room = "turn-rate headroom" if what == "turn rate" else "band"
+        cause = self.cause
+        what = "turn rate" if cause == "turn" else f"{cause} {self.alpha:g}-sigma region"
+        room = "turn-rate headroom" if cause == "turn" else "band"
+        share = {"lateral": self.lateral, "heading": self.heading, "turn": self.turn}[cause]
         return f"at {scale:.2f} x the asked speed its {what} would take {share:.2f} of its {room}"
 
 
@@ -153,7 +159,8 @@ def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov
         if m.worst <= 1.0:
             chosen = rung if faster is None else _between(rung, m.worst, faster, base, v, w, cov, cap, alpha,
                                                           w_rate_cap, a_out, beyond, floors)
-            return replace(chosen, held_by=held.describe(faster[0]) if held is not None else "")
+            return replace(chosen, held_by=held.describe(faster[0]) if held is not None else "",
+                           cause=held.cause if held is not None else "")
         if k == first > 0 and asked is not None and (top := _asked_top(asked, v, w, cap, alpha, w_rate_cap, a_out,
                                                                        base.s.v_min_mps, floors)) is not None:
             return top
@@ -162,7 +169,7 @@ def fastest_fitting_rung(base: HorizonProblem, v: np.ndarray, w: np.ndarray, cov
             best, best_miss = rung, m
             best_a[:] = a_out
     a_out[:] = best_a
-    return replace(best, held_by="no rung fits; " + best_miss.describe(best.scale))
+    return replace(best, held_by="no rung fits; " + best_miss.describe(best.scale), cause="no-fit")
 
 
 def _asked_top(asked: Callable[[], AskedModel | None], v: np.ndarray, w: np.ndarray, cap: np.ndarray,

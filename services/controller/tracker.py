@@ -63,6 +63,7 @@ class Decision:
     heading_rad: float
     loc_age_s: float
     law: LawResult | None = None     # what the steering law reported, when it ran this step
+    held_by: str = ""                # what held v_mps below the asked speed (messages.SpeedCause; "": nothing)
 
     @property
     def iterations(self) -> int:
@@ -80,6 +81,7 @@ class PathTracker:
         self.lag = lag
         self.law = law
         self.limits = limits
+        self.asked_mps = speed_mps            # the trial's speed as asked (the robot's limit may hold it)
         self.speed_mps = min(speed_mps, limits.v_max_mps)
         if schedule is not None and len(schedule) != len(path):
             raise ValueError(f"a schedule of {len(schedule)} speeds for a route of {len(path)} vertices")
@@ -144,9 +146,10 @@ class PathTracker:
 
     def scheduled_speed(self, distance_m: float) -> float:
         """Speed at a place on the route: the schedule's speed at the nearest vertex (thesis 5.3.1:
-        v_cmd = v_sched,i), or the one fixed speed of the trial."""
+        v_cmd = v_sched,i), or the one fixed speed of the trial, as asked (speed_at holds it to the robot's
+        limit)."""
         if self.schedule is None:
-            return self.speed_mps
+            return self.asked_mps
         i = int(np.clip(np.searchsorted(self.path.s, distance_m), 0, len(self.path) - 1))
         if i > 0 and distance_m - self.path.s[i - 1] < self.path.s[i] - distance_m:
             i -= 1
@@ -156,9 +159,20 @@ class PathTracker:
         """What the robot is commanded at a distance along the route: the schedule, the robot's limit,
         the speed it can turn along the route at (turn_speed.py), and a constant deceleration into the
         end of the route."""
+        return min(v for v, _ in self._speed_limits(distance_m))
+
+    def _speed_limits(self, distance_m: float) -> tuple[tuple[float, str], ...]:
+        """speed_at's terms, each with its SpeedCause (the asked speed's: "")."""
         remaining = max(self.path.length_m - distance_m, 0.0)
-        return min(self.scheduled_speed(distance_m), math.sqrt(2.0 * self.stop_decel * remaining) + 0.02,
-                   self.limits.v_max_mps, float(np.interp(distance_m, self.path.s, self.turn_caps)))
+        return ((self.scheduled_speed(distance_m), ""), (math.sqrt(2.0 * self.stop_decel * remaining) + 0.02, "route-end"),
+                (self.limits.v_max_mps, "robot-limit"), (float(np.interp(distance_m, self.path.s, self.turn_caps)), "turn-cap"))
+
+    def _held_by(self, distance_m: float, profile_mps: float, res: LawResult) -> str:
+        """What held the command below the asked speed: the law where it chose a slower speed than the
+        profile, else the profile's lowest term."""
+        if res.v_mps is not None and math.isfinite(res.v_mps) and res.v_mps < profile_mps - 1e-9:
+            return res.held_by
+        return min(self._speed_limits(distance_m), key=lambda t: (t[0], t[1] != ""))[1]
 
     def route_errors(self, loc: LocState) -> tuple[np.ndarray, float, float, float]:
         """Pose in the route frame and its (distance, lateral, heading) errors, continuous along the route.
@@ -247,12 +261,13 @@ class PathTracker:
         if res.stop_reason:
             self.halted = res.stop_reason
             return self._halt(last, age, loc, tick, command_at) or stop("stopped", res.stop_reason)
+        held_by = self._held_by(dist, v, res)
         if res.v_mps is not None and math.isfinite(res.v_mps):
             v = max(0.0, min(res.v_mps, self.limits.v_max_mps))
         w_limit = self.limits.w_limit(v)
         w = max(-w_limit, min(w_limit, res.w_radps))
         self._last_cmd = (v, w)
-        return Decision(v, w, "tracking", reason or res.note, vertex, dist, lat, head, age, res)
+        return Decision(v, w, "tracking", reason or res.note, vertex, dist, lat, head, age, res, held_by)
 
     def _drive_state(self, tick: int | None,
                      command_at: Callable[[int], tuple[float, float] | None] | None) -> tuple[float, float] | None:
