@@ -166,9 +166,10 @@ ControllerState = Literal["idle", "waiting", "tracking", "holding", "stopping", 
 # what held a tracking step's speed command below the asked speed: "" nothing; RC-LB-NMPC's speed ladder by the
 # check its next faster rung failed ("ladder-lateral", "-heading", "-turn"; "-no-fit": no rung fits); the place
 # cap from the latest pass's share of the corridor or of the steering margin; the turn the robot can make
-# along the route (turn_speed.py); the robot's top speed; the slow-down into the end of the route
+# along the route (turn_speed.py); a heading error to turn away before the corridor's edge (tracker.py
+# _recovery_cap); the robot's top speed; the slow-down into the end of the route
 SpeedCause = Literal["", "ladder-lateral", "ladder-heading", "ladder-turn", "ladder-no-fit", "place-corridor",
-                     "place-steering", "turn-cap", "robot-limit", "route-end"]
+                     "place-steering", "turn-cap", "recovery", "robot-limit", "route-end"]
 
 
 @dataclass(frozen=True, kw_only=True)

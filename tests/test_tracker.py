@@ -11,6 +11,7 @@ from common.scenario import TerrainPatch
 from services.controller.core import ControllerCore
 from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult
+from services.controller.corridor import Corridor
 from services.controller.tracker import PathTracker, TrackerLimits
 from services.localizer.pose_source import PoseSourceSettings
 from bench.closed_loop import ClosedLoop
@@ -279,6 +280,27 @@ def test_each_step_says_what_held_its_speed_below_the_asked_one():
     slowed = PathTracker(PATH, SlowingLaw(), LIMITS, speed_mps=1.0)
     d = slowed.step(0.0, loc(0.0, x=2.0, y=0.0))
     assert d.v_mps == pytest.approx(0.3) and d.held_by == "ladder-heading"
+
+
+def test_a_skid_steer_heading_for_its_corridors_edge_slows_to_where_it_can_turn_away_in_time():
+    """0.1 m left of a straight route in a 0.3 m corridor, heading 0.5 rad further left: turning that away
+    within the 0.2 m left takes c = 0.5^2 / (2 x 0.2) = 0.625 /m, which 80 % of a 0.5 rad/s turn gives at
+    0.4 / 0.625 = 0.64 m/s (turn_speed.turn_cap without a turn loss). Heading back towards the route, the
+    0.4 m to the far edge ask 0.3125 /m: 1.28 m/s, above the asked 1 m/s. An Ackermann's curvature does
+    not grow as it slows, and a law that chooses its speed (turn share 0) is left to it."""
+    limits = TrackerLimits(v_max_mps=1.0, w_max_radps=0.5)
+    corridor = Corridor(PATH.s, 0.3, math.radians(40))
+
+    def step(heading, limits=limits, turn_share=0.8):
+        tr = PathTracker(PATH, FLLaw(FLGains()), limits, speed_mps=1.0, corridor=corridor, turn_share=turn_share)
+        return tr.step(0.0, posed(0.0, 2.0, 0.1, heading))
+    out = step(0.5)
+    assert out.v_mps == pytest.approx(0.4 / 0.625) and out.held_by == "recovery"
+    back = step(-0.5)
+    assert back.v_mps == pytest.approx(1.0) and back.held_by == ""
+    assert step(0.5, turn_share=0.0).v_mps == pytest.approx(1.0)
+    ackermann = TrackerLimits(v_max_mps=1.0, w_max_radps=0.5, max_curvature=0.8)
+    assert step(0.5, limits=ackermann).v_mps == pytest.approx(1.0)
 
 
 def test_loop_route_is_repeated_once_round_without_jumping_to_its_end():

@@ -26,7 +26,7 @@ from services.controller.fl import FLGains, fl_angular_rate
 from services.controller.laws import FLLaw, LawResult, StepContext, SteeringLaw
 from services.controller.calibration import PlaceCap
 from services.controller.missed_variance import FloorsBySpeed
-from services.controller.turn_speed import TURN_SHARE, TurnLoss, turn_speed_caps
+from services.controller.turn_speed import TURN_SHARE, TurnLoss, turn_cap, turn_speed_caps
 
 LOC_TIMEOUT_S = 0.5      # stop when the newest estimate is older than this
 STOP_DECEL_MPS2 = 0.4    # the gentle deceleration into the end of the route
@@ -35,6 +35,8 @@ REST_RADPS = 0.02        # ... and, a skid-steer, has stopped turning below this
 CREEP_MPS = 0.01         # what a braking Ackermann is commanded while it rolls: its steering needs a speed
 BRAKE_CURVATURE_PER_M = 0.5   # the most a stop steers beyond the route's own curvature
 END_OF_ROUTE = "end of route reached"
+RECOVERY_ROOM_M = 0.02   # the least room a heading error is given to be turned away in (_recovery_cap)
+RECOVERY_MIN_MPS = 0.2   # ... and the least speed it holds the robot to
 
 # what a law may fail with numerically (ArithmeticError: FloatingPointError, OverflowError, ZeroDivisionError)
 NUMERICAL_FAILURES = (ArithmeticError, np.linalg.LinAlgError)
@@ -167,6 +169,25 @@ class PathTracker:
         return ((self.scheduled_speed(distance_m), ""), (math.sqrt(2.0 * self.stop_decel * remaining) + 0.02, "route-end"),
                 (self.limits.v_max_mps, "robot-limit"), (float(np.interp(distance_m, self.path.s, self.turn_caps)), "turn-cap"))
 
+    def _recovery_cap(self, distance_m: float, lateral_m: float, heading_rad: float) -> float:
+        """The fastest speed at which a skid-steer heading towards its corridor's edge can still turn its
+        heading error away before it gets there (inf: any): turning it away at curvature c moves the robot
+        e_H^2 / 2c further, so c = e_H^2 / 2 room on top of the route's own, which turn_cap turns into a
+        speed with the learned turn loss (turn_speed.py). A skid-steer's turn per metre falls with speed
+        (a Grizzly losing 60 % of its turn per m/s^2 turned 0.18 /m at 1.8 m/s and 0.6 /m at 0.8 m/s): at
+        the asked speed after a corner it took 37 deg over, a fixed-speed law swung +-3.6 m and 60 deg
+        in a 0.35 m corridor (bench seed 1931, s197186723). Only for laws that keep the asked speed (the
+        turn cap's share > 0; RC-LB-NMPC chooses its own) and a turn that slowing gives more of (not an
+        Ackermann's curvature)."""
+        if self.corridor is None or self.turn_share <= 0.0 or math.isfinite(self.limits.max_curvature):
+            return math.inf
+        right, left, _ = (float(x) for x in self.corridor.at(distance_m))
+        room = max((left - lateral_m) if heading_rad > 0.0 else (lateral_m - right), RECOVERY_ROOM_M)
+        kappa = abs(float(np.interp(distance_m, self.path.s, self.path.curvature)))
+        cap = turn_cap(kappa + heading_rad * heading_rad / (2.0 * room), self.turn_share * self.lag.turn_gain,
+                       self.limits.w_max_radps, self.limits.max_curvature, self._loss_now())
+        return max(cap, RECOVERY_MIN_MPS)
+
     def _held_by(self, distance_m: float, profile_mps: float, res: LawResult) -> str:
         """What held the command below the asked speed: the law where it chose a slower speed than the
         profile, else the profile's lowest term."""
@@ -239,6 +260,8 @@ class PathTracker:
         self._prev_pose = (last.capture_tick, pose)
         law_lat, law_head = self._smoothed(vertex, lat, head)
         v = self.speed_at(dist)
+        recovery = self._recovery_cap(dist, lat, head)
+        v = min(v, recovery)
         delayed, before = (), None
         xi_now = xi_capture = self.lag.settled(self._last_cmd)   # without a command history: settled
         if tick is not None and command_at is not None:
@@ -261,7 +284,7 @@ class PathTracker:
         if res.stop_reason:
             self.halted = res.stop_reason
             return self._halt(last, age, loc, tick, command_at) or stop("stopped", res.stop_reason)
-        held_by = self._held_by(dist, v, res)
+        held_by = "recovery" if recovery <= v else self._held_by(dist, v, res)
         if res.v_mps is not None and math.isfinite(res.v_mps):
             v = max(0.0, min(res.v_mps, self.limits.v_max_mps))
         w_limit = self.limits.w_limit(v)
