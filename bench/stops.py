@@ -13,8 +13,9 @@ half-width and |heading| over its limit: 1 on an edge) at the stop and at most a
 `left_after_stop` counts the stops inside the corridor at the stop and outside it afterwards: what a
 stop must not do. The grid is --speeds x --radii x --at. With `--slope DEG`, the corner lies on a side
 slope falling towards `--downhill` (world frame; the default, -90 deg, falls to the right of the
-straight, out of the left corner): its slide and its yaw act on the robot while it rolls. The controller has the corridor the services
-give it (`--corridor`, the scenario's default); the brake weighs its two limits (brake.py).
+straight, out of the left corner): its slide and its yaw act on the robot while it rolls. The
+controller has the corridor the services give it (`--corridor`, the scenario's default); the brake
+weighs its two limits (brake.py).
 Deterministic; prints, per preset, the stops with their medians, maxima and worst cases, and over all
 presets the largest turn and the stops that left, on its last line.
 """
@@ -88,7 +89,8 @@ def corner_slope(radius_m: float, slope_deg: float, downhill_deg: float) -> list
 
 
 def stops_on(preset: str, radius_m: float, speeds: list[float], at: list[float], seed: int,
-             corridor: tuple[float, float] | None = None, slope: tuple[float, float] = (0.0, -90.0)) -> list[StopOutcome]:
+             corridor: tuple[float, float] | None = None,
+             slope: tuple[float, float] = (0.0, -90.0)) -> list[StopOutcome]:
     """One teach pass of the corner route, then one repeat per (speed share, arc share); `corridor`:
     (lateral m, heading deg), None for none; `slope`: (deg, downhill deg) of a side slope under the corner."""
     robot = PRESETS[preset]

@@ -166,8 +166,10 @@ class PathTracker:
     def _speed_limits(self, distance_m: float) -> tuple[tuple[float, str], ...]:
         """speed_at's terms, each with its SpeedCause (the asked speed's: "")."""
         remaining = max(self.path.length_m - distance_m, 0.0)
-        return ((self.scheduled_speed(distance_m), ""), (math.sqrt(2.0 * self.stop_decel * remaining) + 0.02, "route-end"),
-                (self.limits.v_max_mps, "robot-limit"), (float(np.interp(distance_m, self.path.s, self.turn_caps)), "turn-cap"))
+        return ((self.scheduled_speed(distance_m), ""),
+                (math.sqrt(2.0 * self.stop_decel * remaining) + 0.02, "route-end"),
+                (self.limits.v_max_mps, "robot-limit"),
+                (float(np.interp(distance_m, self.path.s, self.turn_caps)), "turn-cap"))
 
     def _recovery_cap(self, distance_m: float, lateral_m: float, heading_rad: float) -> float:
         """The fastest speed at which a skid-steer heading towards its corridor's edge can still turn its
