@@ -176,7 +176,7 @@ class PathTracker:
         heading error away before it gets there (inf: any): turning it away at curvature c moves the robot
         e_H^2 / 2c further, so c = e_H^2 / 2 room on top of the route's own, which turn_cap turns into a
         speed with the learned turn loss (turn_speed.py). A skid-steer's turn per metre falls with speed
-        (a Grizzly losing 60 % of its turn per m/s^2 turned 0.18 /m at 1.8 m/s and 0.6 /m at 0.8 m/s): at
+        (a Grizzly with a turn loss of 0.6 per m/s^2 turned 0.18 /m at 1.8 m/s and 0.6 /m at 0.8 m/s): at
         the asked speed after a corner it took 37 deg over, a fixed-speed law swung +-3.6 m and 60 deg
         in a 0.35 m corridor (bench seed 1931, s197186723). Only for laws that keep the asked speed (the
         turn cap's share > 0; RC-LB-NMPC chooses its own) and a turn that slowing gives more of (not an
