@@ -323,8 +323,9 @@ def test_the_guard_never_raises_a_vertex_again_to_where_it_failed():
     """G7, bench seed 1931's MATS s93349841 in small: 11 vertices 1 m apart; trial 1 at 0.9 m/s swung
     12 deg at vertex 5 (beyond lambda_H 10 * lambda_db 1.1 = 11 deg), trials 2-4 at 0.7 m/s took 2 deg
     everywhere. Eq. 4.2 raises every vertex to 0.9; G2 over the latest three trials (all at 0.7, 2 deg)
-    caps nothing (0.8 * 10 deg is reached at 2.8 m/s). G7 keeps vertex 5 below the 0.9 it failed at:
-    max(0.7, 0.9 - gamma2) = 0.7. With the guard off, eq. 4.2 alone: 0.9 everywhere."""
+    caps nothing (0.8 * 10 deg is reached at 2.8 m/s). G7 keeps vertex 5 and those within guard_radius_m
+    (3 m: vertices 2-8) below the 0.9 it failed at: max(0.7, 0.9 - gamma2) = 0.7. With the guard off, eq.
+    4.2 alone: 0.9 everywhere; with use_all_trials alone, vertex 5 only."""
     n = 11
     s, xy = straight(n)
     head = [2.0] * n
@@ -334,11 +335,13 @@ def test_the_guard_never_raises_a_vertex_again_to_where_it_failed():
     prev, last = hist[-1]
     p = no_limits(lambda_L=0.3, lambda_H=10.0, w_max=1.2)
     on = plan(prev, last, hist, s, xy, p)
-    np.testing.assert_allclose(on.schedule, np.where(np.arange(n) == 5, 0.7, 0.9))
-    assert "1 increases capped below speeds that failed in earlier trials" in on.notes
+    np.testing.assert_allclose(on.schedule, np.where(abs(np.arange(n) - 5) <= 3, 0.7, 0.9))
+    assert "7 increases capped below speeds that failed in earlier trials" in on.notes
     np.testing.assert_allclose(on.caps.v_cap, 2.8)     # G2: 2 deg * v / 0.7 reaches 8 deg at 2.8 m/s
     off = plan(prev, last, hist, s, xy, SchedulerParams(**{**p.__dict__, "guard": False}))
     np.testing.assert_allclose(off.schedule, 0.9)
+    alone = plan(prev, last, hist, s, xy, SchedulerParams(**{**p.__dict__, "guard": False, "use_all_trials": True}))
+    np.testing.assert_allclose(alone.schedule, np.where(np.arange(n) == 5, 0.7, 0.9))
 
 
 def test_pass_speeds_are_collected_and_stored(tmp_path):

@@ -75,7 +75,8 @@ the errors grow at one speed). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
        G5 holds it back like any decrease.
 
   (G7) a vertex is never raised again to a speed at which any earlier trial went beyond eq. 4.2's deadband
-       there (`use_all_trials`, on with the guard). G2 looks at the latest guard_trials trials only, and
+       within guard_radius_m of it (`use_all_trials`, on with the guard, over G1's neighbourhood: a swing
+       that peaks beyond the limit began before its peak). G2 looks at the latest guard_trials only, and
        some errors do not grow smoothly with speed: bench seed 1931's MATS s93349841 (Ackermann, a rough
        rutted patch at its curvature limit) swung 2-5 deg at 0.5-0.86 m/s in every trial and 11.3 deg at
        0.9 m/s in trial 3; lowered there, then raised by eq. 4.2 with G2 fitting trials 4-6 at 0.66-0.86
@@ -323,6 +324,8 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     the earlier trials of `history` (each trial's schedule and passes, oldest first, this one included)
     where use_all_trials and the guard ask for them."""
     failed = failure_speeds(history, p) if (p.use_all_trials or p.guard) and history else None
+    if failed is not None and p.guard:          # G7: the swing that failed began before its peak
+        failed = nearby_min(failed, *neighbourhoods(s, p.guard_radius_m))
     caps = guard_caps(history, s, p) if p.guard and history else None
     withhold = unhelpful_decreases(history, s, p) if p.guard else None
     worsening = growing_errors(history, s, p) if p.guard else None
@@ -475,6 +478,11 @@ def apply_guard(sugg: np.ndarray, prev: np.ndarray, decisions: np.ndarray,
     by = ", ".join(f"{name} {int(np.sum(capped & (caps.by == c)))}" for c, name in enumerate(CRITERIA)
                    if np.any(capped & (caps.by == c)))
     return out, f"guard: {int(np.sum(capped))} increases capped ({by}), {held} of them kept at their speed"
+
+
+def nearby_min(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Per vertex i, the least of values[lo_i:hi_i] (neighbourhoods)."""
+    return np.array([values[a:b].min() if b > a else values[i] for i, (a, b) in enumerate(zip(lo, hi))])
 
 
 def failure_speeds(history: list[tuple[np.ndarray, VertexPasses]], p: SchedulerParams) -> np.ndarray:
