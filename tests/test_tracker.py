@@ -303,6 +303,22 @@ def test_a_skid_steer_heading_for_its_corridors_edge_slows_to_where_it_can_turn_
     assert step(0.5, limits=ackermann).v_mps == pytest.approx(1.0)
 
 
+def test_after_a_recovery_the_speed_stays_down_until_the_errors_are_back_within_half_the_corridor():
+    """The case above holds 0.64 m/s. Turned back to the route's heading 0.25 m out (0.83 of the 0.3 m),
+    nothing caps the speed by the heading, but the robot is still far out: it stays at 0.64. At 0.05 m
+    (0.17), heading 0.2 rad and turning at 2 rad/s, the heading a period ahead (0.4 rad, 0.57 of 40 deg)
+    keeps it there; once the heading has settled, back to the asked 1 m/s."""
+    limits = TrackerLimits(v_max_mps=1.0, w_max_radps=0.5)
+    tr = PathTracker(PATH, FLLaw(FLGains()), limits, speed_mps=1.0, corridor=Corridor(PATH.s, 0.3, math.radians(40)),
+                     turn_share=0.8)
+    assert tr.step(0.0, posed(0.0, 2.0, 0.1, 0.5)).v_mps == pytest.approx(0.64)
+    far = tr.step(0.1, posed(0.1, 2.1, 0.25, 0.0))
+    assert far.v_mps == pytest.approx(0.64) and far.held_by == "recovery"
+    assert tr.step(0.2, posed(0.2, 2.2, 0.05, 0.2)).v_mps == pytest.approx(0.64)    # heading -> 0.4 rad
+    back = tr.step(0.3, posed(0.3, 2.3, 0.05, 0.2))
+    assert back.v_mps == pytest.approx(1.0) and back.held_by == ""
+
+
 def test_loop_route_is_repeated_once_round_without_jumping_to_its_end():
     sim = ClosedLoop([[0, 0], [12, 0], [12, 8], [0, 8]], preset="husky", seed=5, loop=True)
     path = sim.teach()
