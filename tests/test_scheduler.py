@@ -325,7 +325,8 @@ def test_the_guard_never_raises_a_vertex_again_to_where_it_failed():
     everywhere. Eq. 4.2 raises every vertex to 0.9; G2 over the latest three trials (all at 0.7, 2 deg)
     caps nothing (0.8 * 10 deg is reached at 2.8 m/s). G7 keeps vertex 5 and those within guard_radius_m
     (3 m: vertices 2-8) below the 0.9 it failed at: max(0.7, 0.9 - gamma2) = 0.7. With the guard off, eq.
-    4.2 alone: 0.9 everywhere; with use_all_trials alone, vertex 5 only."""
+    4.2 alone: 0.9 everywhere; with use_all_trials alone, vertex 5 only. A failure at v_init (0.5 m/s)
+    caps nothing (G4)."""
     n = 11
     s, xy = straight(n)
     head = [2.0] * n
@@ -342,6 +343,8 @@ def test_the_guard_never_raises_a_vertex_again_to_where_it_failed():
     np.testing.assert_allclose(off.schedule, 0.9)
     alone = plan(prev, last, hist, s, xy, SchedulerParams(**{**p.__dict__, "guard": False, "use_all_trials": True}))
     np.testing.assert_allclose(alone.schedule, np.where(np.arange(n) == 5, 0.7, 0.9))
+    at_v_init = [(np.full(n, 0.5), passes_v([0.01] * n, head, [0.1] * n, [0.5] * n))] + hist[1:]
+    np.testing.assert_allclose(plan(prev, last, at_v_init, s, xy, p).schedule, 0.9)
 
 
 def test_pass_speeds_are_collected_and_stored(tmp_path):

@@ -74,9 +74,11 @@ the errors grow at one speed). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
        heading errors of 6.1, 8.0 and 9.3 deg in trials 5-7 against a 10.5 deg corridor, then 13.0 deg).
        G5 holds it back like any decrease.
 
-  (G7) a vertex is never raised again to a speed at which any earlier trial went beyond eq. 4.2's deadband
-       within guard_radius_m of it (`use_all_trials`, on with the guard, over G1's neighbourhood: a swing
-       that peaks beyond the limit began before its peak). G2 looks at the latest guard_trials only, and
+  (G7) a vertex is never raised again to a speed above v_init at which any earlier trial went beyond eq.
+       4.2's deadband within guard_radius_m of it (`use_all_trials`, on with the guard, over G1's
+       neighbourhood: a swing that peaks beyond the limit began before its peak; above v_init as in G4: a
+       pass that failed at trial 1's speed or slower says nothing about speed, and remembered, it would
+       keep a side slope's vertex at eq. 4.2's crawl for good). G2 looks at the latest guard_trials only, and
        some errors do not grow smoothly with speed: bench seed 1931's MATS s93349841 (Ackermann, a rough
        rutted patch at its curvature limit) swung 2-5 deg at 0.5-0.86 m/s in every trial and 11.3 deg at
        0.9 m/s in trial 3; lowered there, then raised by eq. 4.2 with G2 fitting trials 4-6 at 0.66-0.86
@@ -324,8 +326,8 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     the earlier trials of `history` (each trial's schedule and passes, oldest first, this one included)
     where use_all_trials and the guard ask for them."""
     failed = failure_speeds(history, p) if (p.use_all_trials or p.guard) and history else None
-    if failed is not None and p.guard:          # G7: the swing that failed began before its peak
-        failed = nearby_min(failed, *neighbourhoods(s, p.guard_radius_m))
+    if failed is not None and p.guard:          # G7: above v_init (G4), over G1's neighbourhood
+        failed = nearby_min(np.where(failed > p.v_init, failed, np.inf), *neighbourhoods(s, p.guard_radius_m))
     caps = guard_caps(history, s, p) if p.guard and history else None
     withhold = unhelpful_decreases(history, s, p) if p.guard else None
     worsening = growing_errors(history, s, p) if p.guard else None
