@@ -204,8 +204,9 @@ class PathTracker:
         cap = self._recovery_cap(distance_m, lateral_m, heading_rad)
         if cap < profile_mps:
             self._recovery_hold = min(self._recovery_hold, cap)
-        elif self.corridor is not None and max(self.corridor.share(distance_m, lateral_m, heading_rad),
-                                               self.corridor.share(distance_m, 0.0, heading_ahead_rad)) <= RECOVERED_SHARE:
+        elif math.isfinite(self._recovery_hold) and self.corridor is not None and max(
+                self.corridor.share(distance_m, lateral_m, heading_rad),
+                self.corridor.share(distance_m, 0.0, heading_ahead_rad)) <= RECOVERED_SHARE:
             self._recovery_hold = math.inf
         return min(cap, self._recovery_hold)
 
