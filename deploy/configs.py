@@ -1,6 +1,7 @@
 """Turn a scenario into one typed config per service, written as TOML next to the run's outputs."""
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -65,6 +66,10 @@ def service_configs(sc: Scenario, data_dir: str | Path) -> dict[str, object]:
         params["v_max"] = min(params["v_max"], rp.v_max_mps)    # the robot's own limit is an a-priori one
         # the robot's turn-rate limit, for the scheduler's guard; a w_max written in [scheduler] is a ceiling
         params["w_max"] = rp.w_max_radps if params.get("w_max") is None else min(params["w_max"], rp.w_max_radps)
+        # ... and an Ackermann's curvature limit (G8); a kappa_max written in [scheduler] is a ceiling too
+        k_robot = rp.max_curvature if math.isfinite(rp.max_curvature) else None
+        k_set = params.get("kappa_max")
+        params["kappa_max"] = k_robot if k_set is None else (k_set if k_robot is None else min(k_set, k_robot))
         # the corridor is an a-priori limit too: errors the scheduler tolerates (up to its deadband) stay in it
         lat_m, head_deg = narrowest_corridor(sc.constraints)
         params["lambda_L"] = min(params["lambda_L"], lat_m / params["lambda_db"])

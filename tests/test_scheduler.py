@@ -472,3 +472,58 @@ def test_errors_growing_towards_the_limit_at_one_speed_lower_the_vertex():
     held = after(0.10, 0.13, v0=1.6)
     np.testing.assert_allclose(held.schedule, 1.3)
     assert not any("vertices lowered" in n_ for n_ in held.notes)       # held back by G5: not said to be lowered
+
+
+def test_an_ackermann_turning_at_its_limit_against_a_slope_is_not_slowed_below_v_init():
+    """G8, worked by hand. A MATS (kappa_max = tan 30 deg / 1.9 m = 0.3039 1/m; at the limit from 0.9 of
+    it, 0.2735 1/m) on 11 vertices of straight route 1 m apart, 0.25 m off at every vertex (beyond
+    lambda_L 0.15 and its deadband: eq. 4.2 lowers all by gamma2). At 0.5 m/s it turned at 0.15 rad/s
+    (0.30 1/m, at the limit) at vertices 4-6, 0.05 elsewhere: vertices 1-9 lie within 3 m of those and
+    stay at 0.5 (bench seed 9973's MATS s1638813658 slid 0.51 m at the 0.26 m/s eq. 4.2 chose); 0 and 10
+    go to 0.26. From 0.9 m/s (0.27 rad/s, 0.30 1/m) eq. 4.2's 0.66 stands, above v_init; from 0.6 m/s
+    (0.18 rad/s) it stops at v_init, 0.5, not 0.36. Not at the limit (0.13 rad/s at 0.5 m/s: 0.26 1/m),
+    on a route that itself turns at 0.2 1/m (> kappa_max / 2), on a robot with no curvature limit, with
+    no route curvature given, or with the guard off: 0.26 everywhere, as eq. 4.2 says."""
+    n = 11
+    s, xy = straight(n)
+    k_max = math.tan(math.radians(30.0)) / 1.9
+    p = no_limits(lambda_L=0.15, lambda_H=10.0, lambda_omega=1.0, w_max=1.0, kappa_max=k_max)
+    straight_k = np.zeros(n)
+
+    def after(v, w_peak, params=p, route_kappa=straight_k):
+        sched = np.full(n, v)
+        w = np.full(n, 0.05)
+        w[4:7] = w_peak
+        pa = passes_v([0.25] * n, [2.0] * n, w, sched)
+        return plan(sched, pa, [(sched, pa)], s, xy, params, route_kappa)
+
+    held = after(0.5, 0.15)
+    np.testing.assert_allclose(held.schedule, [0.26] + [0.5] * 9 + [0.26])
+    assert held.decisions.tolist() == [DECREASE] * n
+    assert ("guard: 9 vertices not lowered below v_init where the robot turned at its curvature limit against "
+            "a disturbance") in held.notes
+    np.testing.assert_allclose(after(0.9, 0.27).schedule, 0.66)
+    np.testing.assert_allclose(after(0.6, 0.18).schedule, [0.36] + [0.5] * 9 + [0.36])
+    np.testing.assert_allclose(after(0.5, 0.13).schedule, 0.26)
+    np.testing.assert_allclose(after(0.5, 0.15, route_kappa=np.full(n, 0.2)).schedule, 0.26)
+    np.testing.assert_allclose(after(0.5, 0.15, route_kappa=None).schedule, 0.26)
+    np.testing.assert_allclose(after(0.5, 0.15, params=no_limits(lambda_L=0.15, w_max=1.0)).schedule, 0.26)
+    np.testing.assert_allclose(after(0.5, 0.15, params=no_limits(lambda_L=0.15, kappa_max=k_max, guard=False))
+                               .schedule, 0.26)
+    with pytest.raises(ValueError, match="kappa_max"):
+        no_limits(kappa_max=0.0)
+
+
+def test_the_deployment_gives_the_scheduler_an_ackermanns_curvature_limit():
+    from common.scenario import parse_scenario
+    from deploy.configs import service_configs
+
+    def params(preset, **kw):
+        sc = parse_scenario({"name": "k", "robot": {"preset": preset}, "path": {"waypoints": [[0, 0], [10, 0]]},
+                             "scheduler": {"enabled": True, **kw}})
+        return service_configs(sc, "/tmp/unused")["scheduler"].params
+
+    assert params("mats").kappa_max == pytest.approx(math.tan(math.radians(30.0)) / 1.9)
+    assert params("grizzly").kappa_max is None
+    assert params("mats", kappa_max=0.1).kappa_max == 0.1 and params("mats", kappa_max=2.0).kappa_max < 0.31
+    assert params("husky", kappa_max=0.5).kappa_max == 0.5

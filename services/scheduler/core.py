@@ -84,6 +84,15 @@ the errors grow at one speed). For each criterion c (|e_L|, |e_H| of eq. 4.1 and
        0.9 m/s in trial 3; lowered there, then raised by eq. 4.2 with G2 fitting trials 4-6 at 0.66-0.86
        m/s, it swung 10.8 deg at 1.0 m/s in trial 7.
 
+  (G8) on a curvature-limited robot (an Ackermann, kappa_max), a vertex is not lowered below v_init where a
+       pass within guard_radius_m turned at its curvature limit (|omega_cmd| >= AUTHORITY_SHARE kappa_max v)
+       on a stretch of route straighter than kappa_max / 2. Its heading can change by at most v kappa_max
+       per second, and what held it there was not the route but a disturbance that acts per second (a side
+       slope's yaw and slide): slower, it has less of the turn it needs. Bench seed 9973's MATS s1638813658
+       (14.6 deg side slope): 0.25 m at 0.5 m/s turning at the limit, 0.15 rad/s; eq. 4.2 lowered it to
+       0.26 m/s, where the limit is 0.08 rad/s against the slope's 0.064 rad/s, and it slid 0.51 m. Above
+       v_init the decreases are eq. 4.2's (slowing cuts a lag's overshoot, G7 remembers where it failed).
+
 The learned model's variance at the new speed bin (thesis 5.3.2, 7.2) would be a third prediction, but
 it lives in the store and describes the disturbance, not the errors and turn rates the controller will
 produce with it; the passes predict those directly, without a query on the bus, so the guard uses them
@@ -97,6 +106,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 INCREASE, KEEP, DECREASE = 1, 0, -1
+AUTHORITY_SHARE = 0.9   # a pass turning at this share of v kappa_max or more is at its curvature limit (G8)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -127,6 +137,8 @@ class SchedulerParams:
     guard_radius_m: float = 3.0  # passes this close to a vertex count as its own (G1)
     guard_trials: int = 3        # the latest trials the growth with speed is fitted over (G2)
     guard_help: float = 0.5      # slowing must have cut the error by this share of its proportional fall (G5)
+    kappa_max: float | None = None  # the robot's curvature limit (1/m), set by the deployment for an Ackermann;
+                                    # None: not curvature-limited (G8 off)
 
     def __post_init__(self):
         if self.gamma1 <= 0 or self.gamma2 <= 0:
@@ -147,6 +159,8 @@ class SchedulerParams:
             raise ValueError("guard_share must be in (0, 1], guard_radius_m >= 0 and guard_trials >= 1")
         if not 0 < self.guard_help <= 1:
             raise ValueError("guard_help must be in (0, 1]")
+        if self.kappa_max is not None and not self.kappa_max > 0:
+            raise ValueError("kappa_max must be > 0 (or left out: not curvature-limited)")
 
 
 @dataclass
@@ -288,11 +302,13 @@ def initial_schedule(s: np.ndarray, xy: np.ndarray, p: SchedulerParams) -> Propo
 
 def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.ndarray, p: SchedulerParams,
                   failed_at: np.ndarray | None = None, caps: GuardCaps | None = None,
-                  withhold: np.ndarray | None = None, worsening: np.ndarray | None = None) -> Proposal:
+                  withhold: np.ndarray | None = None, worsening: np.ndarray | None = None,
+                  turn_limited: np.ndarray | None = None) -> Proposal:
     """The schedule for trial j+1 from trial j's schedule and experience. `failed_at[i]`: the lowest
     scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials and G7;
     `caps`: the guard's ceilings (guard_caps), `withhold`: the decreases it holds back (unhelpful_decreases),
-    `worsening`: the vertices it lowers (growing_errors); all None for the thesis rule alone."""
+    `worsening`: the vertices it lowers (growing_errors), `turn_limited`: the vertices not lowered below
+    v_init (curvature_limited); all None for the thesis rule alone."""
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
     lower = decisions == DECREASE
@@ -306,6 +322,12 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
         notes.append(f"guard: {int(np.sum(grown & lower))} vertices lowered where the errors grew towards the "
                      f"limit from trial to trial")
     sugg = np.where(lower, prev - p.gamma2, np.where(decisions == INCREASE, prev + p.gamma1, prev))
+    if turn_limited is not None:
+        kept = lower & turn_limited & (sugg < np.minimum(prev, p.v_init))
+        sugg = np.where(kept, np.minimum(prev, p.v_init), sugg)
+        if np.any(kept):
+            notes.append(f"guard: {int(np.sum(kept))} vertices not lowered below v_init where the robot turned at "
+                         f"its curvature limit against a disturbance")
     raised = np.where(lower, DECREASE, decisions)     # the increases left once G6 has lowered some
     if failed_at is not None:
         capped = (raised == INCREASE) & (sugg >= failed_at - 1e-9)    # 0.7 + 0.2 is 0.8999999999999999
@@ -321,17 +343,20 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
 
 
 def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray,
-         xy: np.ndarray, p: SchedulerParams) -> Proposal:
+         xy: np.ndarray, p: SchedulerParams, route_kappa: np.ndarray | None = None) -> Proposal:
     """The next schedule as the service makes it: from the latest trial's `passes` (eq. 4.2-4.5), capped by
     the earlier trials of `history` (each trial's schedule and passes, oldest first, this one included)
-    where use_all_trials and the guard ask for them."""
+    where use_all_trials and the guard ask for them. `route_kappa`: the route's curvature per vertex (1/m),
+    for G8 (None: G8 off)."""
     failed = failure_speeds(history, p) if (p.use_all_trials or p.guard) and history else None
     if failed is not None and p.guard:          # G7: above v_init (G4), over G1's neighbourhood
         failed = nearby_min(np.where(failed > p.v_init, failed, np.inf), *neighbourhoods(s, p.guard_radius_m))
     caps = guard_caps(history, s, p) if p.guard and history else None
     withhold = unhelpful_decreases(history, s, p) if p.guard else None
     worsening = growing_errors(history, s, p) if p.guard else None
-    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening)
+    limited = (curvature_limited(prev, passes, s, route_kappa, p)
+               if p.guard and p.kappa_max is not None and route_kappa is not None else None)
+    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening, limited)
 
 
 # --- the guard (module doc, G1-G7) ----------------------------------------------------------------------
@@ -453,6 +478,18 @@ def growing_errors(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray
         grown = e1 - e0 * v1 / v0
         out = (e1 >= p.guard_share) & (e1 + grown > 1.0)
     return out & np.isfinite(e0) & np.isfinite(e1)
+
+
+def curvature_limited(sched: np.ndarray, passes: VertexPasses, s: np.ndarray, route_kappa: np.ndarray,
+                      p: SchedulerParams) -> np.ndarray:
+    """G8 per vertex: within guard_radius_m of it the latest pass turned at the robot's curvature limit where
+    the route is straighter than kappa_max / 2 (the limit was taken by a disturbance, not by the route)."""
+    v = pass_speeds(sched, passes)
+    with np.errstate(invalid="ignore"):
+        at_limit = ((np.abs(passes.w_cmd_radps) >= AUTHORITY_SHARE * p.kappa_max * v) & (v > 0)
+                    & (np.abs(np.asarray(route_kappa, dtype=float)) <= 0.5 * p.kappa_max))
+    lo, hi = neighbourhoods(s, p.guard_radius_m)
+    return np.array([bool(np.any(at_limit[a:b])) for a, b in zip(lo, hi)], dtype=bool)
 
 
 def _worst_share(pa: VertexPasses, lo: np.ndarray, hi: np.ndarray, p: SchedulerParams) -> np.ndarray:

@@ -178,7 +178,8 @@ class SchedulerService(Service):
         prev = self.latest(path_id)
         self.db.save_passes(path_id, robot, trial, version, collector.passes)
         history = self.db.history(path_id) if self.params.use_all_trials or self.params.guard else []
-        proposal = plan(np.asarray(prev.v_mps), collector.passes, history, route.s, route.poses[:, :2], self.params)
+        proposal = plan(np.asarray(prev.v_mps), collector.passes, history, route.s, route.poses[:, :2], self.params,
+                        route.curvature)
         return self._store(path_id, proposal, robot, trial)
 
     def _answer(self, query: zenoh.Query, fn) -> None:
