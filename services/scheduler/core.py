@@ -25,11 +25,12 @@ A criterion without data (no matched features from a `pose` localizer) is skippe
 The guard (`guard`, on by default; off, the schedule is eq. 4.2-4.5 exactly). Eq. 4.2 raises a vertex
 by gamma1 when its criteria were met at the *old* speed; it does not ask whether they will be met at
 the new one: a turn that took 0.86 rad/s at 0.7 m/s is scheduled at 0.9 m/s, where it takes ~1.1 rad/s
-against a 1.2 rad/s limit, and the corrections on top of that saturate the controller. The guard asks of a prediction at the
-new speed what eq. 4.2 asks of the last pass, with a margin, and caps the increase there (it never
-lowers a speed for a prediction at a new speed; G5 holds back decreases that did not help, G6 lowers where
-the errors grow at one speed, G8 holds an Ackermann's turn against a slope). For each criterion c (|e_L|,
-|e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i, over the latest `guard_trials` trials t:
+against a 1.2 rad/s limit, and the corrections on top of that saturate the controller. The guard asks of
+a prediction at the new speed what eq. 4.2 asks of the last pass, with a margin, and caps the increase
+there (it never lowers a speed for a prediction at a new speed; G5 holds back decreases that did not
+help, G6 lowers where the errors grow at one speed, G8 holds an Ackermann's turn against a slope). For
+each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i, over the latest
+`guard_trials` trials t:
 
   (G1) of the passes of trial t within guard_radius_m of vertex i (a peak moves a little with speed),
        the one with the largest c / v: E_t,i its value, V_t,i its commanded speed (the scheduled one
