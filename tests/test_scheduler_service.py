@@ -221,3 +221,22 @@ def test_the_guard_holds_a_turn_the_thesis_rule_would_speed_up(tmp_path):
         assert any(n.startswith("guard: ") and "turn rate" in n for n in v2.notes), v2.notes
     finally:
         rig.close()
+
+
+def test_the_guard_keeps_an_ackermann_at_v_init_where_it_turned_at_its_curvature_limit(tmp_path):
+    """G8 through the service (the route's curvature comes from the localizer's route). Every vertex of the
+    straight route was 0.25 m off at 0.5 m/s (beyond lambda_L 0.15 and its deadband: eq. 4.2 lowers all to
+    0.26); at 23.75-26.25 m the robot turned at 0.15 rad/s, 0.30 /m, at a MATS's limit (kappa_max 0.3039,
+    0.9 of it 0.2735). Those vertices and 3 m either side stay at v_init; the rest go to 0.26."""
+    rig = Rig(tmp_path, replace(PARAMS, guard=True, w_max=1.0, kappa_max=0.3039))
+    try:
+        rig.schedule()
+        rig.drive_trial(1, lambda i: 0.25, w=lambda i: 0.15 if 95 <= i <= 105 else 0.05, v=lambda i: 0.5)
+        v2 = rig.wait_version(2)
+        d, v = np.asarray(v2.decisions), np.asarray(v2.v_mps)
+        assert np.all(d[20:180] == DECREASE)                    # eq. 4.2's decisions, as they were
+        assert v[100] == pytest.approx(0.5) and v[90] == pytest.approx(0.5)
+        assert v[40] == pytest.approx(0.26) and v[150] == pytest.approx(0.26)
+        assert any("not lowered below v_init" in n for n in v2.notes), v2.notes
+    finally:
+        rig.close()
