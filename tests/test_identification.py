@@ -300,6 +300,30 @@ def test_the_teach_passs_needs_are_kept_by_place():
     assert places[10, 0] == 1.0 and places[10, 9] > 1.5
 
 
+def test_a_place_needs_nothing_from_the_localizers_noise_while_the_robot_is_at_rest():
+    """A teach pass at 1 m/s that stops at 30 m (its commands zero) with a localizer of 1.2 cm step noise:
+    one across-the-route residual of 5 times that noise, at rest, would read as a need of
+    sqrt((e^2 / 9 - noise) / base^2) = 8 on the model's spread there (the model's spread at rest is its
+    base alone): it is left out. The same residual while moving needs, in closed form,
+    sqrt((e^2 / 9 - noise) / model var) = 1.6."""
+    n, noise = 400, 0.012
+    U = np.column_stack([np.ones(n), np.zeros(n)])
+    U[300:] = 0.0
+    along = np.minimum(0.1 * np.arange(n), 30.0)
+    G = np.zeros((n, 3))
+    e = 5.0 * noise
+    G[320, 1] = e                                     # at rest, at 30 m
+    G[100, 1] = e                                     # at 10 m, moving
+    res = dataclasses.replace(residuals(G, U, noise ** 2, 2 * noise ** 2), along_m=along)
+    prior = PriorStd()
+    places, _ = place_factors(res, prior)
+    assert np.all(places[15] == 1.0)                  # 30-32 m: only the rest's windows begin there
+    sigma_moving = prior.base[1] + prior.per_mps[1]
+    expected = math.sqrt((e * e / 9 - noise ** 2) / sigma_moving ** 2)
+    assert expected == pytest.approx(1.6) and places[5, 0] == pytest.approx(expected)
+    assert math.sqrt((e * e / 9 - noise ** 2) / prior.base[1] ** 2) == pytest.approx(8.0)   # what the rest would read
+
+
 def test_the_localizers_step_noise_lowers_an_inflated_prior_to_the_default_level_at_most():
     """Residuals of c_i times the shape's std plus a localizer's step noise of known variance: a level the
     noise inflated above the default comes back to c_i where c_i is above the default (along, heading),

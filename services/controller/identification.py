@@ -98,6 +98,8 @@ CORNER_CURVATURE = 0.05     # 1/m
 CORNER_GAP = 10             # periods
 CORNER_MIN_RAD = math.radians(20.0)
 CORNER_SPREAD = 0.25
+# a period whose commands are both below these is at rest: the model says the robot does not move
+REST_MPS, REST_RADPS = 0.01, 0.01
 MAX_TURN_GAIN_STD = 0.1
 
 
@@ -505,14 +507,21 @@ def place_factors(res: TeachResiduals, prior: PriorStd, steps: int = MAX_HORIZON
     the fastest speed commanded there. The teach pass is the route's first pass: the online check
     remembers the errors of a place from one pass to the next (calibration.py), and these seed that
     memory for trial 1. The global factors above forget a rough patch once the check has seen WINDOW calm
-    predictions; the place's do not."""
+    predictions; the place's do not.
+
+    Windows spent wholly at rest are left out: there the model's spread is its base alone, far below the
+    localizer's step noise, so one estimate a little beyond 3 sigma of that noise reads as a need of
+    several times the model's spread, which the place would then put on every plan at speed (bench seed
+    1583's Grizzly s359857086: 2.9 from the teach pass's stop at the route's end, which stopped trials
+    3-5 six metres before it)."""
     if res.along_m is None or not len(res):
         return np.ones((0, steps)), np.zeros(0)
     var = prior.std(res.u) ** 2
     bins = np.floor(np.maximum(res.along_m, 0.0) / PLACE_BIN_M).astype(int)
     out = np.ones((int(bins.max()) + 1, steps))
+    moving = ((np.abs(res.u[:, 0]) >= REST_MPS) | (np.abs(res.u[:, 1]) >= REST_RADPS)).astype(float)
     for j in range(1, min(steps, len(res)) + 1):
-        need = _window_needs(res, var, j, 3.0)
+        need = _window_needs(res, var, j, 3.0) * (np.convolve(moving, np.ones(j), "valid") > 0)
         np.maximum.at(out[:, j - 1], bins[:len(need)], need)
     speed = np.zeros(len(out))
     np.maximum.at(speed, bins, np.abs(res.u[:, 0]))
