@@ -95,15 +95,12 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
        v_init the decreases are eq. 4.2's (slowing cuts a lag's overshoot, G7 remembers where it failed).
 
   (G9) on a curvature-limited robot, a vertex is not raised where the latest pass within guard_radius_m
-       turned at its curvature limit over SATURATED_RUN_M of route or more, in a corner that asks for
-       more than half of kappa_max and less than AUTHORITY_SHARE of it (at 0.5 m/s a MATS's limit is
-       0.15 rad/s, which a correction or a corner's entry touches for a few tenths of a metre in many
-       places of every pass): the route takes its share of the curvature by the metre at any speed, and
-       the corrections took the rest; faster, the understeer grows with v^2 and the steering, rate-
-       limited and lagging, turns less per metre. On a straighter stretch the limit was taken by a
-       disturbance, and one that acts per second (a slope, G8) leaves more margin at a higher speed: held
-       there, bench seed 9973's MATS s1638813658 stayed at the limit at 0.5 m/s (trial 8: 64.5 s, errors
-       up to 0.15 m, against 49.0 s and 0.03 m with the speed raised). Bench seed 1583's MATS s366112847 (a
+       turned at its curvature limit over SATURATED_RUN_M of route or more, on route that asks for less
+       than AUTHORITY_SHARE kappa_max (at 0.5 m/s a MATS's limit is 0.15 rad/s, which a correction or a
+       corner's entry touches for a few tenths of a metre in many places of every pass): its
+       corrections took the whole steering margin, and its errors there say how close it came, not how
+       much a faster pass would have left. Faster, rough ground yaws it as much per metre while the
+       steering, rate-limited and lagging, turns less per metre. Bench seed 1583's MATS s366112847 (a
        36 deg corner of 0.185 /m, kappa_max 0.30 /m, on rough ground): at 0.5 m/s the command sat at the
        limit for 4 m with errors of 0.05 m; raised to 0.65 m/s it held the limit again within 0.10 m, and at
        the same speed in the next trial it swung 10.7 deg and went 0.43 m out of its 0.31 m corridor. Once
@@ -377,9 +374,8 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     withhold = unhelpful_decreases(history, s, p) if p.guard else None
     worsening = growing_errors(history, s, p) if p.guard else None
     g8 = p.guard and p.kappa_max is not None and route_kappa is not None
-    limited = curvature_limited(prev, passes, s, route_kappa, p, (0.0, 0.5)) if g8 else None
-    saturated = (curvature_limited(prev, passes, s, route_kappa, p, (0.5, AUTHORITY_SHARE), SATURATED_RUN_M)
-                 if g8 else None)
+    limited = curvature_limited(prev, passes, s, route_kappa, p, 0.5) if g8 else None
+    saturated = curvature_limited(prev, passes, s, route_kappa, p, AUTHORITY_SHARE, SATURATED_RUN_M) if g8 else None
     return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening, limited, saturated)
 
 
@@ -505,18 +501,15 @@ def growing_errors(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray
 
 
 def curvature_limited(sched: np.ndarray, passes: VertexPasses, s: np.ndarray, route_kappa: np.ndarray,
-                      p: SchedulerParams, route_share: tuple[float, float], min_run_m: float = 0.0) -> np.ndarray:
+                      p: SchedulerParams, route_share: float, min_run_m: float = 0.0) -> np.ndarray:
     """Per vertex: within guard_radius_m of it the latest pass turned at the robot's curvature limit where
-    the route asks for a share of it within `route_share` (lo exclusive, hi inclusive: below hi, the limit
-    was taken by corrections, not by the route alone), over `min_run_m` of route at least: G8 with (0,
-    0.5] (by a disturbance, on a nearly straight stretch), G9 with (0.5, AUTHORITY_SHARE] over
-    SATURATED_RUN_M."""
+    the route asks for at most `route_share` of it (the limit was taken by corrections, not by the route
+    alone), over `min_run_m` of route at least: G8 with 0.5 (by a disturbance, on a nearly straight
+    stretch), G9 with AUTHORITY_SHARE over SATURATED_RUN_M."""
     v = pass_speeds(sched, passes)
-    share = np.abs(np.asarray(route_kappa, dtype=float)) / p.kappa_max
-    lo = route_share[0] if route_share[0] > 0.0 else -1.0
     with np.errstate(invalid="ignore"):
         at_limit = ((np.abs(passes.w_cmd_radps) >= AUTHORITY_SHARE * p.kappa_max * v) & (v > 0)
-                    & (share > lo) & (share <= route_share[1]))
+                    & (np.abs(np.asarray(route_kappa, dtype=float)) <= route_share * p.kappa_max))
     if min_run_m > 0.0:
         at_limit = prune_isolated(np.where(at_limit, INCREASE, KEEP), s, min_run_m) == INCREASE
     lo, hi = neighbourhoods(s, p.guard_radius_m)
