@@ -95,9 +95,7 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
        v_init the decreases are eq. 4.2's (slowing cuts a lag's overshoot, G7 remembers where it failed).
 
   (G9) on a curvature-limited robot, a vertex is not raised where the latest pass within guard_radius_m
-       turned at its curvature limit over SATURATED_RUN_M of route or more, on route that asks for less
-       than AUTHORITY_SHARE kappa_max (at 0.5 m/s a MATS's limit is 0.15 rad/s, which a correction or a
-       corner's entry touches for a few tenths of a metre in many places of every pass): its
+       turned at its curvature limit on route that asks for less than AUTHORITY_SHARE kappa_max: its
        corrections took the whole steering margin, and its errors there say how close it came, not how
        much a faster pass would have left. Faster, rough ground yaws it as much per metre while the
        steering, rate-limited and lagging, turns less per metre. Bench seed 1583's MATS s366112847 (a
@@ -120,7 +118,6 @@ import numpy as np
 
 INCREASE, KEEP, DECREASE = 1, 0, -1
 AUTHORITY_SHARE = 0.9   # a pass turning at this share of v kappa_max or more is at its curvature limit (G8, G9)
-SATURATED_RUN_M = 1.5   # G9: over this much route at least (a corner's entry or a correction touches it briefly)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -375,7 +372,7 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     worsening = growing_errors(history, s, p) if p.guard else None
     g8 = p.guard and p.kappa_max is not None and route_kappa is not None
     limited = curvature_limited(prev, passes, s, route_kappa, p, 0.5) if g8 else None
-    saturated = curvature_limited(prev, passes, s, route_kappa, p, AUTHORITY_SHARE, SATURATED_RUN_M) if g8 else None
+    saturated = curvature_limited(prev, passes, s, route_kappa, p, AUTHORITY_SHARE) if g8 else None
     return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening, limited, saturated)
 
 
@@ -501,17 +498,14 @@ def growing_errors(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray
 
 
 def curvature_limited(sched: np.ndarray, passes: VertexPasses, s: np.ndarray, route_kappa: np.ndarray,
-                      p: SchedulerParams, route_share: float, min_run_m: float = 0.0) -> np.ndarray:
+                      p: SchedulerParams, route_share: float) -> np.ndarray:
     """Per vertex: within guard_radius_m of it the latest pass turned at the robot's curvature limit where
     the route asks for at most `route_share` of it (the limit was taken by corrections, not by the route
-    alone), over `min_run_m` of route at least: G8 with 0.5 (by a disturbance, on a nearly straight
-    stretch), G9 with AUTHORITY_SHARE over SATURATED_RUN_M."""
+    alone): G8 with 0.5 (by a disturbance, on a nearly straight stretch), G9 with AUTHORITY_SHARE."""
     v = pass_speeds(sched, passes)
     with np.errstate(invalid="ignore"):
         at_limit = ((np.abs(passes.w_cmd_radps) >= AUTHORITY_SHARE * p.kappa_max * v) & (v > 0)
                     & (np.abs(np.asarray(route_kappa, dtype=float)) <= route_share * p.kappa_max))
-    if min_run_m > 0.0:
-        at_limit = prune_isolated(np.where(at_limit, INCREASE, KEEP), s, min_run_m) == INCREASE
     lo, hi = neighbourhoods(s, p.guard_radius_m)
     return np.array([bool(np.any(at_limit[a:b])) for a, b in zip(lo, hi)], dtype=bool)
 
