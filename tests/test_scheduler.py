@@ -514,39 +514,6 @@ def test_an_ackermann_turning_at_its_limit_against_a_slope_is_not_slowed_below_v
         no_limits(kappa_max=0.0)
 
 
-def test_an_ackermann_that_turned_at_its_limit_beyond_the_routes_turn_is_not_raised():
-    """G9, worked by hand. The MATS of the G8 test (at the limit from 0.2735 1/m) on 11 vertices 1 m apart
-    of a corner turning at 0.185 1/m (bench seed 1583's MATS s366112847), 0.05 m and 2 deg off everywhere
-    (inside the deadband: eq. 4.2 raises every vertex by gamma1, and G3's caps lie above 0.7). At 0.5 m/s
-    it turned at 0.15 rad/s (0.30 1/m) at vertices 4-6, 0.093 (the route's) elsewhere: vertices 1-9 lie
-    within 3 m of those and stay at 0.5; 0 and 10 go to 0.7. Not at the limit (0.13 rad/s), on a corner
-    that itself asks for 0.28 1/m (> 0.2735: the limit is the route's), on a robot with no curvature
-    limit, or with the guard off: 0.7 everywhere."""
-    n = 11
-    s, xy = straight(n)
-    k_max = math.tan(math.radians(30.0)) / 1.9
-    p = no_limits(lambda_L=0.15, lambda_H=10.0, lambda_omega=1.0, w_max=1.0, kappa_max=k_max)
-    corner = np.full(n, 0.185)
-
-    def after(w_peak, params=p, route_kappa=corner):
-        sched = np.full(n, 0.5)
-        w = np.full(n, 0.5 * 0.185)
-        w[4:7] = w_peak
-        pa = passes_v([0.05] * n, [2.0] * n, w, sched)
-        return plan(sched, pa, [(sched, pa)], s, xy, params, route_kappa)
-
-    held = after(0.15)
-    np.testing.assert_allclose(held.schedule, [0.7] + [0.5] * 9 + [0.7])
-    assert held.decisions.tolist() == [INCREASE] * n
-    assert ("guard: 9 increases withheld where the robot turned at its curvature limit beyond the route's own "
-            "turn") in held.notes
-    np.testing.assert_allclose(after(0.13).schedule, 0.7)
-    np.testing.assert_allclose(after(0.15, route_kappa=np.full(n, 0.28)).schedule, 0.7)
-    np.testing.assert_allclose(after(0.15, params=no_limits(lambda_L=0.15, w_max=1.0)).schedule, 0.7)
-    np.testing.assert_allclose(after(0.15, params=no_limits(lambda_L=0.15, kappa_max=k_max, guard=False))
-                               .schedule, 0.7)
-
-
 def test_the_deployment_gives_the_scheduler_an_ackermanns_curvature_limit():
     from common.scenario import parse_scenario
     from deploy.configs import service_configs

@@ -94,16 +94,6 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
        0.26 m/s, where the limit is 0.08 rad/s against the slope's 0.064 rad/s, and it slid 0.51 m. Above
        v_init the decreases are eq. 4.2's (slowing cuts a lag's overshoot, G7 remembers where it failed).
 
-  (G9) on a curvature-limited robot, a vertex is not raised where the latest pass within guard_radius_m
-       turned at its curvature limit on route that asks for less than AUTHORITY_SHARE kappa_max: its
-       corrections took the whole steering margin, and its errors there say how close it came, not how
-       much a faster pass would have left. Faster, rough ground yaws it as much per metre while the
-       steering, rate-limited and lagging, turns less per metre. Bench seed 1583's MATS s366112847 (a
-       36 deg corner of 0.185 /m, kappa_max 0.30 /m, on rough ground): at 0.5 m/s the command sat at the
-       limit for 4 m with errors of 0.05 m; raised to 0.65 m/s it held the limit again within 0.10 m, and at
-       the same speed in the next trial it swung 10.7 deg and went 0.43 m out of its 0.31 m corridor. Once
-       a pass no longer needs the limit there, eq. 4.2 raises the vertex again.
-
 The learned model's variance at the new speed bin (thesis 5.3.2, 7.2) would be a third prediction, but
 it lives in the store and describes the disturbance, not the errors and turn rates the controller will
 produce with it; the passes predict those directly, without a query on the bus, so the guard uses them
@@ -117,7 +107,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 INCREASE, KEEP, DECREASE = 1, 0, -1
-AUTHORITY_SHARE = 0.9   # a pass turning at this share of v kappa_max or more is at its curvature limit (G8, G9)
+AUTHORITY_SHARE = 0.9   # a pass turning at this share of v kappa_max or more is at its curvature limit (G8)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -314,13 +304,12 @@ def initial_schedule(s: np.ndarray, xy: np.ndarray, p: SchedulerParams) -> Propo
 def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.ndarray, p: SchedulerParams,
                   failed_at: np.ndarray | None = None, caps: GuardCaps | None = None,
                   withhold: np.ndarray | None = None, worsening: np.ndarray | None = None,
-                  turn_limited: np.ndarray | None = None, turn_saturated: np.ndarray | None = None) -> Proposal:
+                  turn_limited: np.ndarray | None = None) -> Proposal:
     """The schedule for trial j+1 from trial j's schedule and experience. `failed_at[i]`: the lowest
     scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials and G7;
     `caps`: the guard's ceilings (guard_caps), `withhold`: the decreases it holds back (unhelpful_decreases),
     `worsening`: the vertices it lowers (growing_errors), `turn_limited`: the vertices not lowered below
-    v_init (curvature_limited, G8), `turn_saturated`: the vertices not raised (curvature_limited, G9); all
-    None for the thesis rule alone."""
+    v_init (curvature_limited); all None for the thesis rule alone."""
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
     lower = decisions == DECREASE
@@ -341,10 +330,6 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
             notes.append(f"guard: {int(np.sum(kept))} vertices not lowered below v_init where the robot turned at "
                          f"its curvature limit against a disturbance")
     raised = np.where(lower, DECREASE, decisions)     # the increases left once G6 has lowered some
-    if turn_saturated is not None and np.any(held := (raised == INCREASE) & turn_saturated):
-        sugg = np.where(held, prev, sugg)
-        notes.append(f"guard: {int(np.sum(held))} increases withheld where the robot turned at its curvature "
-                     f"limit beyond the route's own turn")
     if failed_at is not None:
         capped = (raised == INCREASE) & (sugg >= failed_at - 1e-9)    # 0.7 + 0.2 is 0.8999999999999999
         sugg = np.where(capped, np.maximum(prev, failed_at - p.gamma2), sugg)
@@ -370,13 +355,12 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     caps = guard_caps(history, s, p) if p.guard and history else None
     withhold = unhelpful_decreases(history, s, p) if p.guard else None
     worsening = growing_errors(history, s, p) if p.guard else None
-    g8 = p.guard and p.kappa_max is not None and route_kappa is not None
-    limited = curvature_limited(prev, passes, s, route_kappa, p, 0.5) if g8 else None
-    saturated = curvature_limited(prev, passes, s, route_kappa, p, AUTHORITY_SHARE) if g8 else None
-    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening, limited, saturated)
+    limited = (curvature_limited(prev, passes, s, route_kappa, p)
+               if p.guard and p.kappa_max is not None and route_kappa is not None else None)
+    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening, limited)
 
 
-# --- the guard (module doc, G1-G9) ----------------------------------------------------------------------
+# --- the guard (module doc, G1-G8) ----------------------------------------------------------------------
 CRITERIA = ("lateral error", "heading error", "turn rate")
 
 
@@ -498,14 +482,13 @@ def growing_errors(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray
 
 
 def curvature_limited(sched: np.ndarray, passes: VertexPasses, s: np.ndarray, route_kappa: np.ndarray,
-                      p: SchedulerParams, route_share: float) -> np.ndarray:
-    """Per vertex: within guard_radius_m of it the latest pass turned at the robot's curvature limit where
-    the route asks for at most `route_share` of it (the limit was taken by corrections, not by the route
-    alone): G8 with 0.5 (by a disturbance, on a nearly straight stretch), G9 with AUTHORITY_SHARE."""
+                      p: SchedulerParams) -> np.ndarray:
+    """G8 per vertex: within guard_radius_m of it the latest pass turned at the robot's curvature limit where
+    the route is straighter than kappa_max / 2 (the limit was taken by a disturbance, not by the route)."""
     v = pass_speeds(sched, passes)
     with np.errstate(invalid="ignore"):
         at_limit = ((np.abs(passes.w_cmd_radps) >= AUTHORITY_SHARE * p.kappa_max * v) & (v > 0)
-                    & (np.abs(np.asarray(route_kappa, dtype=float)) <= route_share * p.kappa_max))
+                    & (np.abs(np.asarray(route_kappa, dtype=float)) <= 0.5 * p.kappa_max))
     lo, hi = neighbourhoods(s, p.guard_radius_m)
     return np.array([bool(np.any(at_limit[a:b])) for a, b in zip(lo, hi)], dtype=bool)
 
