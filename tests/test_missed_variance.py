@@ -178,3 +178,53 @@ def test_the_heading_floors_hold_the_truth_of_a_robot_that_follows_its_estimate(
         region = 3.0 * math.sqrt(cal.floors().least[0, 1] / MARGIN + sigma ** 2)
         outside.append(np.mean(np.abs(w - eps) > region))
     assert 0.002 < np.mean(outside) < 0.012
+
+
+def _brute_most_missed_near(asked, missed, places, near, ratio):
+    """The most missed of the places whose most missed is within `ratio` times the median over places of
+    their most asked-for, or that lie in `near`: per place by brute force."""
+    by_place = {b: [i for i in range(len(places)) if places[i] == b] for b in set(places)}
+    typical = np.median([asked[idx].max(axis=0) for idx in by_place.values()], axis=0)
+    out = np.zeros(2)
+    for b, idx in by_place.items():
+        most = missed[idx].max(axis=0)
+        keep = (most <= ratio * typical) | (b in near)
+        out = np.maximum(out, np.where(keep, most, 0.0))
+    return out
+
+
+def test_a_places_surprise_floors_plans_near_it_and_the_robots_own_noise_floors_them_everywhere():
+    """Misses everywhere along 60 m of route (the robot's own noise) and ten times larger ones at one 4 m
+    patch: a plan near the patch is held to the patch's, one elsewhere to the rest of the route's; the
+    floors for no place hold both everywhere, as before places were kept."""
+    from services.controller.missed_variance import PLACE_RATIO
+    rng = np.random.default_rng(3)
+    mem = MissedVariance(horizon=1, size=600)
+    places = rng.integers(0, 30, 600)
+    places[rng.random(600) < 0.1] = 12                      # the patch at 24-26 m
+    asked = rng.exponential(1e-4, size=(600, 2))
+    share = np.full((600, 2), 1e-4)
+    asked[places == 12] *= 10.0
+    missed = np.maximum(asked - share, 0.0)
+    for i in range(600):
+        mem.add(1, tuple(asked[i]), tuple(share[i]), 1.0, int(places[i]))
+    everywhere = mem.floors(1.0).added[0]
+    np.testing.assert_allclose(everywhere, MARGIN * missed.max(axis=0), rtol=1e-6)
+    near_patch, far = mem.floors(1.0, range(11, 14)).added[0], mem.floors(1.0, range(2, 5)).added[0]
+    np.testing.assert_allclose(near_patch, everywhere, rtol=1e-6)
+    np.testing.assert_allclose(far, MARGIN * _brute_most_missed_near(asked, missed, places, range(2, 5),
+                                                                     PLACE_RATIO), rtol=1e-5)
+    assert far[0] < 0.5 * everywhere[0] and far[0] >= MARGIN * missed[places != 12, 0].max() * (1 - 1e-6)
+    assert mem.by_speed(range(2, 5)).at(1.0).added[0] == pytest.approx(far)
+
+
+def test_a_noise_the_robot_shows_at_every_place_floors_every_place():
+    """No place stands out (the same misses' distribution everywhere): the floors near any place are those
+    for no place."""
+    rng = np.random.default_rng(4)
+    mem = MissedVariance(horizon=2, size=800)
+    for i in range(800):
+        a = rng.exponential(1e-4, 2)
+        mem.add(1 + i % 2, tuple(a), (5e-5, 5e-5), 1.2, int(rng.integers(0, 40)))
+    for near in (range(0, 3), range(20, 23), range(38, 42)):
+        np.testing.assert_allclose(mem.floors(1.2, near).added, mem.floors(1.2).added)

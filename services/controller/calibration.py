@@ -187,14 +187,19 @@ class SpreadCalibration:
             return self.scales.copy()
         return _widened(self.scales, np.max(near, axis=0))
 
-    def floors(self, v_mps: float | None = None) -> SpreadFloors:
+    def floors(self, v_mps: float | None = None, s_m: float | None = None) -> SpreadFloors:
         """Per step and channel, what is added to the model's share of the predicted variance and the
-        least that share may be, for a plan at `v_mps` (missed_variance.py; None: at any speed)."""
-        return self.missed.floors(v_mps)
+        least that share may be, for a plan at `v_mps` (missed_variance.py; None: at any speed) made at
+        route distance `s_m` (None: anywhere, every place's misses held)."""
+        return self.missed.floors(v_mps, self._near_or_none(s_m, v_mps or 0.0))
 
-    def floors_by_speed(self) -> FloorsBySpeed:
-        """The same as a function of the plan's speed, for this control step."""
-        return self.missed.by_speed()
+    def floors_by_speed(self, s_m: float | None = None, v_mps: float = 0.0) -> FloorsBySpeed:
+        """The same as a function of the plan's speed, for this control step, made at route distance `s_m`
+        while commanding `v_mps`."""
+        return self.missed.by_speed(self._near_or_none(s_m, v_mps))
+
+    def _near_or_none(self, s_m: float | None, v_mps: float) -> range | None:
+        return self._near(s_m, v_mps) if s_m is not None and math.isfinite(s_m) else None
 
     def beyond_at(self, s_m: float | None, v_mps: float = 0.0) -> Beyond:
         """For a plan made at route distance `s_m` at speed `v_mps`: from which speed it outruns what the
@@ -256,7 +261,9 @@ class SpreadCalibration:
             head = _Channel(h, var_head_rad2, p.loc_sigma_head_rad, p.sigma_head_rad, p.scale, p.model_sigma_head_rad)
             need = max(lat.need, head.need)
             out.append(self._update(p.step - 1, max(abs(z_lat), abs(z_head)), need))
-            self.missed.add(p.step, (lat.asked, head.asked_followed), (lat.share, head.share), p.v_mps)
+            self.missed.add(p.step, (lat.asked, head.asked_followed), (lat.share, head.share), p.v_mps,
+                            math.floor(p.s_m / PLACE_BIN_M) if math.isfinite(p.s_m) else -1,
+                            (d * d / 9.0, h * h / 9.0))
             self._remember(p, need)
         return out
 

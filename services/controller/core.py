@@ -48,7 +48,7 @@ class ControllerCore:
             observed = self._experiences(obs, loc.capture_tick, candidate)
             self._from_tick = loc.capture_tick
         self.kappa = self.calibration.factors_at(self.s_m, self.v_mps)
-        self.floors = self.calibration.floors_by_speed()
+        self.floors = self.calibration.floors_by_speed(self.s_m, self.v_mps)
         beyond = self.calibration.beyond_at(self.s_m, self.v_mps)
         factors = () if beyond.factors is None else tuple(float(f) for f in np.sqrt(beyond.factors))
         cap = self.calibration.speed_cap_at(self.s_m, self.v_mps) if self.tracker.corridor is not None else None
