@@ -109,40 +109,44 @@ class MissedVariance:
         self._total[j, :, i] = np.maximum(np.asarray(asked if total is None else total, dtype=float), 0.0)
         self._count[j] += 1
 
-    def floors(self, v_mps: float | None = None, near: range | None = None) -> SpreadFloors:
+    def floors(self, v_mps: float | None = None, near: range | None = None,
+               held: np.ndarray | None = None) -> SpreadFloors:
         """MARGIN times the most missed (added to the share) and the asked-for QUANTILE (the least share),
         for a plan at `v_mps` (module docstring; None: every prediction in full, whatever its speed) made
-        where it must allow for the place bins `near` (None: wherever; every place's misses held)."""
-        asked, missed, total = self._asked, self._missed, self._total
+        where it must allow for the place bins `near` (None: wherever; every place's misses held).
+        `held`: held_near(near), if already at hand."""
+        asked, missed = self._asked, self._missed
         if v_mps is not None:
             w = speed_weights(self._speed, v_mps)[:, None, :]
-            asked, missed, total = asked * w, missed * w, total * w
+            asked, missed = asked * w, missed * w
         # the slots not filled yet hold 0, below every value, so the r-th largest of a whole ring is that of
         # its values wherever r <= their count
         kth = self.size - np.array([_rank(min(int(c), self.size)) for c in self._count], dtype=int)
         ranked = np.partition(asked, np.unique(kth), axis=2) if self.horizon else asked
         least = ranked[np.arange(self.horizon), :, kth]
-        most = missed.max(axis=2) if near is None else self._most_missed_near(total, missed, near)
-        return SpreadFloors(MARGIN * most.astype(float), MARGIN * least.astype(float))
+        if near is not None:
+            missed = np.where(self.held_near(near) if held is None else held, missed, 0.0)
+        return SpreadFloors(MARGIN * missed.max(axis=2).astype(float), MARGIN * least.astype(float))
 
-    def _most_missed_near(self, total: np.ndarray, missed: np.ndarray, near: range) -> np.ndarray:
-        """(K, 2): the most missed by predictions made at ordinary places, at no known place, or at the
-        place bins `near`. A place is not ordinary where its most missed exceeds PLACE_RATIO times the
-        median place's largest error variance, nothing taken off (module docstring): the median of the
-        most missed (or asked for) is 0 wherever the model's share (or the localizer's) held at most
-        places, and every tail of the robot's own noise would then count as its place's."""
+    def held_near(self, near: range) -> np.ndarray:
+        """(K, 2, size): the predictions whose misses hold a plan that must allow for the place bins `near`:
+        those made at ordinary places, at no known place, or at `near`. A place is not ordinary where its
+        most missed exceeds PLACE_RATIO times the median place's largest error variance, nothing taken off
+        (module docstring): the median of the most missed (or asked for) is 0 wherever the model's share
+        (or the localizer's) held at most places, and every tail of the robot's own noise would then count
+        as its place's. Judged on the misses in full, whatever their speed: once per control step."""
         n_bins = int(self._place.max(initial=-1)) + 2          # the last column: no known place
         col = np.where(self._place >= 0, self._place, n_bins - 1)
-        per_missed, per_total = _most_per_place(missed, col, n_bins), _most_per_place(total, col, n_bins)
+        per_missed, per_total = _most_per_place(self._missed, col, n_bins), _most_per_place(self._total, col, n_bins)
         known = self._place >= 0
         seen = np.zeros((self.horizon, n_bins), dtype=bool)
         seen[np.broadcast_to(np.arange(self.horizon)[:, None], col.shape)[known], col[known]] = True
         median = _median_seen(per_total[:, :, :-1], seen[:, :-1])
-        ordinary = per_missed <= PLACE_RATIO * median[:, :, None]
+        ordinary = per_missed <= PLACE_RATIO * median[:, :, None]        # (K, 2, n_bins)
         ordinary[:, :, -1] = True
-        most = np.where(ordinary, per_missed, 0.0).max(axis=2)
         here = [b for b in near if 0 <= b < n_bins - 1]
-        return np.maximum(most, per_missed[:, :, here].max(axis=2)) if here else most
+        ordinary[:, :, here] = True
+        return np.take_along_axis(ordinary, np.broadcast_to(col[:, None, :], self._missed.shape), axis=2)
 
     def any(self) -> bool:
         return bool(self._asked.any())     # what was missed is at most what was asked for
@@ -193,6 +197,7 @@ class FloorsBySpeed:
     def __init__(self, memory: MissedVariance, near: range | None = None):
         self._memory = memory
         self._near = near
+        self._held: np.ndarray | None = None
         self._at: dict[float, SpreadFloors] = {}
 
     def any(self) -> bool:
@@ -201,5 +206,7 @@ class FloorsBySpeed:
     def at(self, v_mps: float) -> SpreadFloors:
         v = float(v_mps)
         if v not in self._at:
-            self._at[v] = self._memory.floors(v, self._near)
+            if self._near is not None and self._held is None:
+                self._held = self._memory.held_near(self._near)
+            self._at[v] = self._memory.floors(v, self._near, self._held)
         return self._at[v]
