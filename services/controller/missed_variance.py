@@ -31,11 +31,12 @@ robot whose jitter does not fade with speed is held to it again by its slower pr
 Per place: what the predictions made over a few places missed is those places' (a rough corner, a slip
 patch), not the robot's. Each prediction keeps the place it was made at (calibration.PLACE_BIN_M of
 route); a place whose largest miss is more than PLACE_RATIO times the median place's largest error
-(as a variance) is held to it only near it (the places a plan must already allow for: calibration._near), the rest of the route to the
-others'. Held everywhere, one surprise in a rough corner at 1.2 m/s put 2.3 deg of heading sigma on every
-plan of the next 150 s, so a Grizzly drove its calm straights at 1.1 of its 1.75 m/s for the whole next
-trial (bench seed 1583, s155658429: trial 5 took 67.0 s where trial 3 took 48.0). A noise the robot
-shows everywhere is the median place's too, and is held everywhere as before. Pure: inputs in, floors out.
+(as a variance) is held to it only near it (the places a plan must already allow for:
+calibration._near), the rest of the route to the others'. Held everywhere, one surprise in a rough
+corner at 1.2 m/s put 2.3 deg of heading sigma on every plan of the next 150 s, so a Grizzly drove its
+calm straights at 1.1 of its 1.75 m/s for the whole next trial (bench seed 1583, s155658429: trial 5
+took 67.0 s where trial 3 took 48.0). A noise the robot shows everywhere is the median place's too, and
+is held everywhere as before. Pure: inputs in, floors out.
 """
 from __future__ import annotations
 
@@ -138,9 +139,8 @@ class MissedVariance:
         n_bins = int(self._place.max(initial=-1)) + 2          # the last column: no known place
         col = np.where(self._place >= 0, self._place, n_bins - 1)
         per_missed, per_total = _most_per_place(self._missed, col, n_bins), _most_per_place(self._total, col, n_bins)
-        known = self._place >= 0
         seen = np.zeros((self.horizon, n_bins), dtype=bool)
-        seen[np.broadcast_to(np.arange(self.horizon)[:, None], col.shape)[known], col[known]] = True
+        np.put_along_axis(seen, col, True, axis=1)
         median = _median_seen(per_total[:, :, :-1], seen[:, :-1])
         ordinary = per_missed <= PLACE_RATIO * median[:, :, None]        # (K, 2, n_bins)
         ordinary[:, :, -1] = True
@@ -174,8 +174,8 @@ def _median_seen(per: np.ndarray, seen: np.ndarray) -> np.ndarray:
     ranked = np.sort(np.where(seen[:, None, :], per, np.inf), axis=2)
     lo, hi = np.maximum((n - 1) // 2, 0), np.maximum(n // 2, 0)
     rows = np.arange(len(n))[:, None]
-    mid = 0.5 * (ranked[rows, np.arange(per.shape[1])[None, :], lo[:, None]]
-                 + ranked[rows, np.arange(per.shape[1])[None, :], np.minimum(hi, per.shape[2] - 1)[:, None]])
+    chans = np.arange(per.shape[1])[None, :]
+    mid = 0.5 * (ranked[rows, chans, lo[:, None]] + ranked[rows, chans, hi[:, None]])
     return np.where(n[:, None] > 0, mid, 0.0)
 
 
