@@ -347,6 +347,32 @@ def test_the_guard_never_raises_a_vertex_again_to_where_it_failed():
     np.testing.assert_allclose(plan(prev, last, at_v_init, s, xy, p).schedule, 0.9)
 
 
+def test_a_failure_at_v_init_is_remembered_once_a_slower_pass_met_the_criteria():
+    """G7 at trial 1's speed, bench seed 2029's Husky s1330754404 in small (a side slope whose heading error
+    grows with speed): 11 vertices 1 m apart, trial 1 at v_init 0.5 m/s swung 12 deg at vertex 5 (beyond
+    lambda_H 10 * lambda_db 1.1 = 11 deg), trial 2 at 0.26 m/s took 6 deg everywhere. Eq. 4.2 raises every
+    vertex to 0.46 m/s; G2 caps nothing (both passes count at v_init, G4: no line; 8 deg is reached at
+    0.5 * 8 / 6 = 0.67 m/s). G7: vertex 5 failed at 0.5 and was met at 0.26, so vertices 2-8 stay within
+    gamma2 below 0.5: max(0.26, 0.5 - 0.24) = 0.26. Where trial 2 ran faster than the failure (0.7 m/s, the
+    test above), the failure at v_init still caps nothing."""
+    n = 11
+    s, xy = straight(n)
+    head = [6.0] * n
+    head[5] = 12.0
+    hist = [(np.full(n, 0.5), passes_v([0.01] * n, head, [0.1] * n, [0.5] * n)),
+            (np.full(n, 0.26), passes_v([0.01] * n, [6.0] * n, [0.1] * n, [0.26] * n))]
+    prev, last = hist[-1]
+    p = no_limits(lambda_L=0.3, lambda_H=10.0, w_max=1.2)
+    on = plan(prev, last, hist, s, xy, p)
+    np.testing.assert_allclose(on.schedule, np.where(abs(np.arange(n) - 5) <= 3, 0.26, 0.46))
+    assert "7 increases capped below speeds that failed in earlier trials" in on.notes
+    off = plan(prev, last, hist, s, xy, SchedulerParams(**{**p.__dict__, "guard": False}))
+    np.testing.assert_allclose(off.schedule, 0.46)
+    # the thesis's use_all_trials alone caps only a raise that reaches the failed speed
+    alone = plan(prev, last, hist, s, xy, SchedulerParams(**{**p.__dict__, "guard": False, "use_all_trials": True}))
+    np.testing.assert_allclose(alone.schedule, 0.46)
+
+
 def test_pass_speeds_are_collected_and_stored(tmp_path):
     import json
     import sqlite3

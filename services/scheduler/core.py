@@ -75,11 +75,16 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
        heading errors of 6.1, 8.0 and 9.3 deg in trials 5-7 against a 10.5 deg corridor, then 13.0 deg).
        G5 holds it back like any decrease.
 
-  (G7) a vertex is never raised again to a speed above v_init at which any earlier trial went beyond eq.
-       4.2's deadband within guard_radius_m of it (`use_all_trials`, on with the guard, over G1's
-       neighbourhood: a swing that peaks beyond the limit began before its peak; above v_init as in G4: a
-       pass that failed at trial 1's speed or slower says nothing about speed, and remembered, it would
-       keep a side slope's vertex at eq. 4.2's crawl for good). G2 looks at the latest guard_trials only, and
+  (G7) a vertex is never raised again to within gamma2 (eq. 4.2's step down) of a speed at which any
+       earlier trial went beyond eq. 4.2's deadband within guard_radius_m of it (`use_all_trials`, on with
+       the guard, over G1's neighbourhood: a swing that peaks beyond the limit began before its peak). A
+       failure at trial 1's speed or slower counts only where a slower pass met the criteria there: as in
+       G4, it alone says nothing about speed, and remembered, it would keep a side slope's vertex at eq.
+       4.2's crawl for good; once slowing has kept the errors within the deadband, it does (bench seed
+       2029's Husky s1330754404, 11.5 deg side slope, 8.1 deg corridor: 8.8 deg at v_init 0.5 m/s, 6.5
+       deg at 0.34 m/s, then raised by eq. 4.2 and G2 to 0.48 m/s, 9.1 deg; at 0.51 m/s in trial 8, 9.6
+       deg). Within gamma2 of it, not only at it: a raise that stops just short of the failed speed (0.48
+       against 0.50 m/s) meets about the same errors. G2 looks at the latest guard_trials only, and
        some errors do not grow smoothly with speed: bench seed 1931's MATS s93349841 (Ackermann, a rough
        rutted patch at its curvature limit) swung 2-5 deg at 0.5-0.86 m/s in every trial and 11.3 deg at
        0.9 m/s in trial 3; lowered there, then raised by eq. 4.2 with G2 fitting trials 4-6 at 0.66-0.86
@@ -331,8 +336,12 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
                          f"its curvature limit against a disturbance")
     raised = np.where(lower, DECREASE, decisions)     # the increases left once G6 has lowered some
     if failed_at is not None:
-        capped = (raised == INCREASE) & (sugg >= failed_at - 1e-9)    # 0.7 + 0.2 is 0.8999999999999999
-        sugg = np.where(capped, np.maximum(prev, failed_at - p.gamma2), sugg)
+        held = np.maximum(prev, failed_at - p.gamma2)
+        # the thesis's use_all_trials caps a raise that reaches a failed speed; the guard (G7) one that comes
+        # within eq. 4.2's step down of it, which is about as fast
+        reach = failed_at - (p.gamma2 if p.guard else 0.0)
+        capped = (raised == INCREASE) & (sugg >= reach - 1e-9) & (sugg > held + 1e-9)   # 0.7 + 0.2 is 0.8999999999999999
+        sugg = np.where(capped, held, sugg)
         if np.any(capped):
             notes.append(f"{int(np.sum(capped))} increases capped below speeds that failed in earlier trials")
     if caps is not None:
@@ -350,8 +359,9 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     where use_all_trials and the guard ask for them. `route_kappa`: the route's curvature per vertex (1/m),
     for G8 (None: G8 off)."""
     failed = failure_speeds(history, p) if (p.use_all_trials or p.guard) and history else None
-    if failed is not None and p.guard:          # G7: above v_init (G4), over G1's neighbourhood
-        failed = nearby_min(np.where(failed > p.v_init, failed, np.inf), *neighbourhoods(s, p.guard_radius_m))
+    if failed is not None and p.guard:          # G7: above v_init (G4) or met slower, over G1's neighbourhood
+        counted = (failed > p.v_init) | (met_speeds(history, p) < failed - 1e-9)
+        failed = nearby_min(np.where(counted, failed, np.inf), *neighbourhoods(s, p.guard_radius_m))
     caps = guard_caps(history, s, p) if p.guard and history else None
     withhold = unhelpful_decreases(history, s, p) if p.guard else None
     worsening = growing_errors(history, s, p) if p.guard else None
@@ -523,6 +533,16 @@ def apply_guard(sugg: np.ndarray, prev: np.ndarray, decisions: np.ndarray,
 def nearby_min(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Per vertex i, the least of values[lo_i:hi_i] (neighbourhoods)."""
     return np.array([values[a:b].min() if b > a else values[i] for i, (a, b) in enumerate(zip(lo, hi))])
+
+
+def met_speeds(history: list[tuple[np.ndarray, VertexPasses]], p: SchedulerParams) -> np.ndarray:
+    """Per vertex, the lowest scheduled speed of any trial in `history` that passed it without calling
+    for a decrease (within eq. 4.2's deadband or better); inf where none did."""
+    out = np.full(len(history[0][0]), np.inf) if history else np.array([])
+    for sched, passes in history:
+        dec, _ = decide(passes, p)
+        out = np.where(passes.seen & (dec != DECREASE), np.minimum(out, sched), out)
+    return out
 
 
 def failure_speeds(history: list[tuple[np.ndarray, VertexPasses]], p: SchedulerParams) -> np.ndarray:
