@@ -354,7 +354,8 @@ def test_a_failure_at_v_init_is_remembered_once_a_slower_pass_met_the_criteria()
     vertex to 0.46 m/s; G2 caps nothing (both passes count at v_init, G4: no line; 8 deg is reached at
     0.5 * 8 / 6 = 0.67 m/s). G7: vertex 5 failed at 0.5 and was met at 0.26, so vertices 2-8 stay within
     gamma2 below 0.5: max(0.26, 0.5 - 0.24) = 0.26. Where trial 2 ran faster than the failure (0.7 m/s, the
-    test above), the failure at v_init still caps nothing."""
+    test above), the failure at v_init still caps nothing, and a failure below v_init (an end segment's 0.4
+    m/s) never does."""
     n = 11
     s, xy = straight(n)
     head = [6.0] * n
@@ -371,6 +372,8 @@ def test_a_failure_at_v_init_is_remembered_once_a_slower_pass_met_the_criteria()
     # the thesis's use_all_trials alone caps only a raise that reaches the failed speed
     alone = plan(prev, last, hist, s, xy, SchedulerParams(**{**p.__dict__, "guard": False, "use_all_trials": True}))
     np.testing.assert_allclose(alone.schedule, 0.46)
+    below = [(np.full(n, 0.4), hist[0][1]), hist[1]]
+    np.testing.assert_allclose(plan(prev, last, below, s, xy, p).schedule, 0.46)
 
 
 def test_pass_speeds_are_collected_and_stored(tmp_path):

@@ -78,9 +78,12 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
   (G7) a vertex is never raised again to within gamma2 (eq. 4.2's step down) of a speed at which any
        earlier trial went beyond eq. 4.2's deadband within guard_radius_m of it (`use_all_trials`, on with
        the guard, over G1's neighbourhood: a swing that peaks beyond the limit began before its peak). A
-       failure at trial 1's speed or slower counts only where a slower pass met the criteria there: as in
-       G4, it alone says nothing about speed, and remembered, it would keep a side slope's vertex at eq.
-       4.2's crawl for good; once slowing has kept the errors within the deadband, it does (bench seed
+       failure at trial 1's speed counts only where a slower pass met the criteria there, and one below it
+       (eq. 4.3's start and end segments, eq. 4.2's decreases) never: as in G4, such a pass alone says
+       nothing about speed, and remembered, it would keep a side slope's vertex at eq. 4.2's crawl for
+       good, or an end segment below its a-priori speed for a spike of the estimate's noise (bench seed
+       1931's Grizzly s187421464: 0.21 m at 0.4 m/s, the truth within 0.12 m). Once slowing has kept the
+       errors within the deadband, a failure at v_init does say something about speed (bench seed
        2029's Husky s1330754404, 11.5 deg side slope, 8.1 deg corridor: 8.8 deg at v_init 0.5 m/s, 6.5
        deg at 0.34 m/s, then raised by eq. 4.2 and G2 to 0.48 m/s, 9.1 deg; at 0.51 m/s in trial 8, 9.6
        deg). Within gamma2 of it, not only at it: a raise that stops just short of the failed speed (0.48
@@ -359,8 +362,9 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     where use_all_trials and the guard ask for them. `route_kappa`: the route's curvature per vertex (1/m),
     for G8 (None: G8 off)."""
     failed = failure_speeds(history, p) if (p.use_all_trials or p.guard) and history else None
-    if failed is not None and p.guard:          # G7: above v_init (G4) or met slower, over G1's neighbourhood
-        counted = (failed > p.v_init) | (met_speeds(history, p) < failed - 1e-9)
+    if failed is not None and p.guard:          # G7: above v_init, or at it and met slower; over G1's neighbourhood
+        at_v_init = (np.abs(failed - p.v_init) < 1e-9) & (met_speeds(history, p) < failed - 1e-9)
+        counted = (failed > p.v_init + 1e-9) | at_v_init
         failed = nearby_min(np.where(counted, failed, np.inf), *neighbourhoods(s, p.guard_radius_m))
     caps = guard_caps(history, s, p) if p.guard and history else None
     withhold = unhelpful_decreases(history, s, p) if p.guard else None
