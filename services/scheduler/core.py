@@ -312,7 +312,7 @@ def initial_schedule(s: np.ndarray, xy: np.ndarray, p: SchedulerParams) -> Propo
 def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.ndarray, p: SchedulerParams,
                   failed_at: np.ndarray | None = None, caps: GuardCaps | None = None,
                   withhold: np.ndarray | None = None, worsening: np.ndarray | None = None,
-                  turn_limited: np.ndarray | None = None) -> Proposal:
+                  turn_limited: np.ndarray | None = None, restore: np.ndarray | None = None) -> Proposal:
     """The schedule for trial j+1 from trial j's schedule and experience. `failed_at[i]`: the lowest
     scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials and G7;
     `caps`: the guard's ceilings (guard_caps), `withhold`: the decreases it holds back (unhelpful_decreases),
@@ -350,6 +350,11 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
     if caps is not None:
         sugg, note = apply_guard(sugg, prev, raised, caps)
         notes += [note] if note else []
+    if restore is not None and np.any(restore > sugg + 1e-9):
+        back = restore > sugg + 1e-9
+        sugg = np.where(back, restore, sugg)
+        notes.append(f"guard: {int(np.sum(back))} vertices back at an earlier pass's speed where slowing down made "
+                     f"the tracking error larger")
     sugg = np.maximum(sugg, 0.05)   # never schedule a standstill: the robot must finish the route
     sched, lim = limit(sugg, s, xy, p)
     return Proposal(sched, sugg, decisions, lim, notes, caps)
@@ -371,7 +376,8 @@ def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray,
     worsening = growing_errors(history, s, p) if p.guard else None
     limited = (curvature_limited(prev, passes, s, route_kappa, p)
                if p.guard and p.kappa_max is not None and route_kappa is not None else None)
-    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening, limited)
+    restore = faster_and_better(history, s, p) if p.guard else None
+    return next_schedule(prev, passes, s, xy, p, failed, caps, withhold, worsening, limited, restore)
 
 
 # --- the guard (module doc, G1-G8) ----------------------------------------------------------------------
@@ -474,6 +480,31 @@ def unhelpful_decreases(history: list[tuple[np.ndarray, VertexPasses]], s: np.nd
             expected = e0 * (1.0 - p.guard_help * (1.0 - v1 / v0))
             out |= (v1 <= v0 - p.gamma2 / 2) & (e1 > expected) & np.isfinite(e0) & np.isfinite(e1)
     return out & ~(np.abs(latest.w_cmd_radps) > p.lambda_omega * p.lambda_db)
+
+
+def faster_and_better(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray,
+                      p: SchedulerParams) -> np.ndarray:
+    """G5b per vertex: where the latest pass took a tracking limit or more (eq. 4.2 would not raise it) and
+    an earlier trial passed faster (by at least gamma2 / 2) with a smaller worst share of the limits nearby,
+    the scheduled speed of the earlier trial with the smallest; -inf elsewhere (and with fewer than two
+    trials, or where the latest turn rate broke its criterion: there slowing is eq. 4.2's remedy)."""
+    n = len(s)
+    out = np.full(n, -np.inf)
+    if len(history) < 2:
+        return out
+    lo, hi = neighbourhoods(s, p.guard_radius_m)
+    sched1, latest = history[-1]
+    v1, e1 = pass_speeds(sched1, latest), _worst_share(latest, lo, hi, p)
+    best = np.where(np.isfinite(e1), e1, np.inf)
+    for sched0, before in history[:-1]:
+        v0, e0 = pass_speeds(sched0, before), _worst_share(before, lo, hi, p)
+        with np.errstate(invalid="ignore"):
+            better = (v0 >= v1 + p.gamma2 / 2) & (e0 < best) & np.isfinite(e0)
+        out = np.where(better, np.asarray(sched0, dtype=float), out)
+        best = np.where(better, e0, best)
+    with np.errstate(invalid="ignore"):
+        keep = (e1 >= 1.0) & ~(np.abs(latest.w_cmd_radps) > p.lambda_omega * p.lambda_db)
+    return np.where(keep, out, -np.inf)
 
 
 def growing_errors(history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray,
