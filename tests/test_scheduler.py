@@ -376,6 +376,29 @@ def test_a_failure_at_v_init_is_remembered_once_a_slower_pass_met_the_criteria()
     np.testing.assert_allclose(plan(prev, last, below, s, xy, p).schedule, 0.46)
 
 
+def test_a_vertex_goes_back_to_a_faster_pass_where_slowing_made_it_worse():
+    """G5b, bench seed 3607's Grizzly s584978763 in small (a side slope and slip that slide the robot per
+    second): 11 vertices 1 m apart, lambda_L 0.15 m (deadband to 0.165 m). Trial 1 at 0.5 m/s: 0.17 m
+    everywhere (share 1.13, eq. 4.2 lowers by gamma2 to 0.26); trial 2 at 0.26 m/s: 0.30 m (share 2.0). Eq.
+    4.2 lowers again; G5 withholds it (1.13 * (1 - 0.5 (1 - 0.26 / 0.5)) = 0.86 < 2.0), which alone keeps
+    0.26; G5b puts it back at trial 1's 0.5 m/s, the faster pass with the smaller share. The plain rule:
+    0.26 - 0.24, at its 0.05 m/s floor."""
+    n = 11
+    s, xy = straight(n)
+    hist = [(np.full(n, v), passes_v([e] * n, [1.0] * n, [0.1] * n, [v] * n)) for v, e in ((0.5, 0.17), (0.26, 0.30))]
+    prev, last = hist[-1]
+    p = no_limits(lambda_L=0.15, lambda_H=10.0, w_max=1.2)
+    on = plan(prev, last, hist, s, xy, p)
+    np.testing.assert_allclose(on.schedule, 0.5)
+    assert "guard: 11 vertices back at an earlier pass's speed where slowing down made the tracking error larger" \
+        in on.notes
+    np.testing.assert_allclose(plan(prev, last, hist, s, xy, SchedulerParams(**{**p.__dict__, "guard": False})
+                                    ).schedule, 0.05)
+    # where the slower pass did better (0.12 m: share 0.8), nothing goes back
+    better = [hist[0], (np.full(n, 0.26), passes_v([0.12] * n, [1.0] * n, [0.1] * n, [0.26] * n))]
+    assert np.all(plan(better[-1][0], better[-1][1], better, s, xy, p).schedule < 0.5)
+
+
 def test_pass_speeds_are_collected_and_stored(tmp_path):
     import json
     import sqlite3
