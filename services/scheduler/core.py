@@ -65,6 +65,15 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
        one speed trial after trial, which the learned model can learn. A vertex whose turn rate broke its
        criterion is lowered as eq. 4.2 says: omega = v kappa falls with the speed.
 
+  (G5b) a vertex goes back to an earlier trial's speed where slowing made it worse: where the latest pass
+       took a tracking limit or more (share >= 1, as in G5) and an earlier trial passed faster (by at
+       least gamma2 / 2) with a smaller worst share, it is scheduled at that trial's speed (the one with
+       the smallest share). G5 only stops the slowing; the vertex stays at the speed that did worse, trial
+       after trial (bench seed 3607's Grizzly s584978763, a 12.5 deg side slope and a slip patch in a
+       0.248 m corridor: 0.245 m at 0.5 m/s in trial 1, then 0.35-0.41 m at 0.26 m/s and below in trials
+       2-8, every one beyond the corridor). Not where the latest turn rate broke its criterion (slowing is
+       what cuts that).
+
   (G6) a vertex is lowered where its errors grow from trial to trial towards the limit at a speed that
        does not explain it: a rut that deepens with every pass, a patch that wears. With the worst share
        of the limits nearby as in G5, S_t (latest) and S_t-1, and the pass speeds V (counted as at least
