@@ -66,9 +66,9 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
        criterion is lowered as eq. 4.2 says: omega = v kappa falls with the speed.
 
   (G5b) a vertex goes back to an earlier trial's speed where slowing made it worse: where the latest pass
-       took a tracking limit or more (share >= 1, as in G5) and an earlier trial passed faster (by at
-       least gamma2 / 2) with a smaller worst share, it is scheduled at that trial's speed (the one with
-       the smallest share). G5 only stops the slowing; the vertex stays at the speed that did worse, trial
+       took a tracking limit or more (its worst share of the limits nearby, as G5 reads it, >= 1) and an
+       earlier trial passed faster (by at least gamma2 / 2) with a smaller worst share, it is scheduled
+       at that trial's speed (the one with the smallest share). G5 only stops the slowing; the vertex stays at the speed that did worse, trial
        after trial (bench seed 3607's Grizzly s584978763, a 12.5 deg side slope and a slip patch in a
        0.248 m corridor: 0.245 m at 0.5 m/s in trial 1, then 0.35-0.41 m at 0.26 m/s and below in trials
        2-8, every one beyond the corridor). Not where the latest turn rate broke its criterion (slowing is
@@ -582,20 +582,21 @@ def nearby_min(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray
 def met_speeds(history: list[tuple[np.ndarray, VertexPasses]], p: SchedulerParams) -> np.ndarray:
     """Per vertex, the lowest scheduled speed of any trial in `history` that passed it without calling
     for a decrease (within eq. 4.2's deadband or better); inf where none did."""
-    out = np.full(len(history[0][0]), np.inf) if history else np.array([])
-    for sched, passes in history:
-        dec, _ = decide(passes, p)
-        out = np.where(passes.seen & (dec != DECREASE), np.minimum(out, sched), out)
-    return out
+    return _lowest_speeds(history, p, failed=False)
 
 
 def failure_speeds(history: list[tuple[np.ndarray, VertexPasses]], p: SchedulerParams) -> np.ndarray:
     """Per vertex, the lowest scheduled speed of any trial in `history` whose experience there called
     for a decrease (eq. 4.2's second case); inf where none did."""
+    return _lowest_speeds(history, p, failed=True)
+
+
+def _lowest_speeds(history: list[tuple[np.ndarray, VertexPasses]], p: SchedulerParams, failed: bool) -> np.ndarray:
     if not history:
         return np.array([])
     out = np.full(len(history[0][0]), np.inf)
     for sched, passes in history:
         dec, _ = decide(passes, p)
-        out = np.where(dec == DECREASE, np.minimum(out, sched), out)
+        hit = (dec == DECREASE) if failed else passes.seen & (dec != DECREASE)
+        out = np.where(hit, np.minimum(out, sched), out)
     return out
