@@ -498,13 +498,15 @@ def test_errors_growing_towards_the_limit_at_one_speed_lower_the_vertex():
     Below guard_share (0.06 -> 0.11 m, share 0.733, predicted 1.07): not lowered, capped at 0.12 * 1.3 / 0.11.
     Near the limit (0.1485 m) the increases' cap, below the lowered speed, does not undo the lowering.
     A first pass faster (1.6 m/s, 0.10 m) makes the growth d = 0.867 - 0.667 * 1.3 / 1.6 = 0.325: lowered,
-    unless G5 holds it back (slowed by 0.3 m/s, the error rose): then it stays at 1.3."""
+    unless G5 holds it back (slowed by 0.3 m/s, the error rose): then it stays at 1.3. From 0.6 m/s it goes
+    to v_init, 0.5, not 0.36; at 0.45 m/s (below v_init) it stays at 0.45, where eq. 4.2 raises it to 0.65
+    and G4's floor on the caps would let it reach 0.5."""
     n = 11
     s, xy = straight(n)
     p = no_limits(lambda_L=0.15, lambda_H=10.0, w_max=1.2)
 
-    def after(e0, e1, v0=1.3, params=p):
-        first, second = np.full(n, v0), np.full(n, 1.3)
+    def after(e0, e1, v0=1.3, params=p, v1=1.3):
+        first, second = np.full(n, v0), np.full(n, v1)
         history = [(first, passes_v([e0] * n, [1.0] * n, [0.3] * n, first)),
                    (second, passes_v([e1] * n, [1.0] * n, [0.3] * n, second))]
         return plan(second, history[-1][1], history, s, xy, params)
@@ -524,6 +526,10 @@ def test_errors_growing_towards_the_limit_at_one_speed_lower_the_vertex():
     held = after(0.10, 0.13, v0=1.6)
     np.testing.assert_allclose(held.schedule, 1.3)
     assert not any("vertices lowered" in n_ for n_ in held.notes)       # held back by G5: not said to be lowered
+    np.testing.assert_allclose(after(0.10, 0.13, v0=0.6, v1=0.6).schedule, 0.5)      # v_init, not 0.36
+    kept = after(0.10, 0.13, v0=0.45, v1=0.45)
+    np.testing.assert_allclose(kept.schedule, 0.45)
+    assert "guard: 11 vertices whose errors grew left at their speed, at or below v_init" in kept.notes
 
 
 def test_an_ackermann_turning_at_its_limit_against_a_slope_is_not_slowed_below_v_init():

@@ -82,7 +82,12 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
        beyond its limit), the vertex is lowered by gamma2 as eq. 4.2 would lower it one trial later, after
        the violation (bench seed 4127's MATS s277878960, a corner over a rut deepening 9 mm a pass:
        heading errors of 6.1, 8.0 and 9.3 deg in trials 5-7 against a 10.5 deg corridor, then 13.0 deg).
-       G5 holds it back like any decrease.
+       G5 holds it back like any decrease. Not below v_init: G6 lowers no vertex further than v_init, and
+       one at or below it (eq. 4.2 slowed it, or eq. 4.3's segments) is only kept from rising. As in G4
+       and G7, below trial 1's speed growth says little about speed: it is as often a side slope's slide,
+       which a crawl makes longer, as a rut's (bench seed 5261's Grizzly s2052584713, a 14 deg slope over
+       a rut: G6 took the end of its loop from 0.26-0.43 m/s to 0.05-0.19 m/s, and the errors grew at the
+       crawl).
 
   (G7) a vertex is never raised again to within gamma2 (eq. 4.2's step down) of a speed at which any
        earlier trial went beyond eq. 4.2's deadband within guard_radius_m of it (`use_all_trials`, on with
@@ -325,12 +330,17 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
     """The schedule for trial j+1 from trial j's schedule and experience. `failed_at[i]`: the lowest
     scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials and G7;
     `caps`: the guard's ceilings (guard_caps), `withhold`: the decreases it holds back (unhelpful_decreases),
-    `worsening`: the vertices it lowers (growing_errors), `turn_limited`: the vertices not lowered below
+    `worsening`: the vertices it lowers, or keeps from rising at or below v_init (growing_errors), `turn_limited`: the vertices not lowered below
     v_init (curvature_limited); all None for the thesis rule alone."""
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
     lower = decisions == DECREASE
     grown = np.zeros(len(lower), dtype=bool) if worsening is None else worsening & ~lower
+    slow = grown & (prev <= p.v_init + 1e-9)   # G6 acts above v_init only: below it the speeds are eq. 4.2's
+    if np.any(slow):
+        notes.append(f"guard: {int(np.sum(slow))} vertices whose errors grew left at their speed, at or below "
+                     f"v_init")
+    grown &= ~slow
     lower |= grown
     if withhold is not None and np.any(lower & withhold):
         notes.append(f"guard: {int(np.sum(lower & withhold))} decreases withheld where slowing down did not "
@@ -340,6 +350,7 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
         notes.append(f"guard: {int(np.sum(grown & lower))} vertices lowered where the errors grew towards the "
                      f"limit from trial to trial")
     sugg = np.where(lower, prev - p.gamma2, np.where(decisions == INCREASE, prev + p.gamma1, prev))
+    sugg = np.where(grown & lower, np.maximum(sugg, p.v_init), np.where(slow, np.minimum(sugg, prev), sugg))
     if turn_limited is not None:
         kept = lower & turn_limited & (sugg < np.minimum(prev, p.v_init))
         sugg = np.where(kept, np.minimum(prev, p.v_init), sugg)
