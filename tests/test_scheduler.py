@@ -526,10 +526,12 @@ def test_errors_growing_towards_the_limit_at_one_speed_lower_the_vertex():
     held = after(0.10, 0.13, v0=1.6)
     np.testing.assert_allclose(held.schedule, 1.3)
     assert not any("vertices lowered" in n_ for n_ in held.notes)       # held back by G5: not said to be lowered
-    np.testing.assert_allclose(after(0.10, 0.13, v0=0.6, v1=0.6).schedule, 0.5)      # v_init, not 0.36
+    floored = after(0.10, 0.13, v0=0.6, v1=0.6)
+    np.testing.assert_allclose(floored.schedule, 0.5)                                   # v_init, not 0.36
+    assert "guard: 11 vertices whose errors grew kept at v_init, or at their speed below it" in floored.notes
     kept = after(0.10, 0.13, v0=0.45, v1=0.45)
     np.testing.assert_allclose(kept.schedule, 0.45)
-    assert "guard: 11 vertices whose errors grew left at their speed, at or below v_init" in kept.notes
+    assert "guard: 11 vertices whose errors grew kept at v_init, or at their speed below it" in kept.notes
 
 
 def test_an_ackermann_turning_at_its_limit_against_a_slope_is_not_slowed_below_v_init():

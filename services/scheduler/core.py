@@ -330,16 +330,14 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
     """The schedule for trial j+1 from trial j's schedule and experience. `failed_at[i]`: the lowest
     scheduled speed at which any earlier trial decreased vertex i (inf if never), for use_all_trials and G7;
     `caps`: the guard's ceilings (guard_caps), `withhold`: the decreases it holds back (unhelpful_decreases),
-    `worsening`: the vertices it lowers, or keeps from rising at or below v_init (growing_errors), `turn_limited`: the vertices not lowered below
-    v_init (curvature_limited); all None for the thesis rule alone."""
+    `worsening`: the vertices it lowers, no further than v_init, or keeps from rising below it
+    (growing_errors), `turn_limited`: the vertices not lowered below v_init (curvature_limited); all None
+    for the thesis rule alone."""
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
     lower = decisions == DECREASE
     grown = np.zeros(len(lower), dtype=bool) if worsening is None else worsening & ~lower
     slow = grown & (prev <= p.v_init + 1e-9)   # G6 acts above v_init only: below it the speeds are eq. 4.2's
-    if np.any(slow):
-        notes.append(f"guard: {int(np.sum(slow))} vertices whose errors grew left at their speed, at or below "
-                     f"v_init")
     grown &= ~slow
     lower |= grown
     if withhold is not None and np.any(lower & withhold):
@@ -349,6 +347,10 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
     if np.any(grown & lower):     # said after G5, which may hold some of them back
         notes.append(f"guard: {int(np.sum(grown & lower))} vertices lowered where the errors grew towards the "
                      f"limit from trial to trial")
+    floored = slow | (grown & lower & (prev - p.gamma2 < p.v_init))
+    if np.any(floored):
+        notes.append(f"guard: {int(np.sum(floored))} vertices whose errors grew kept at v_init, or at their speed "
+                     f"below it")
     sugg = np.where(lower, prev - p.gamma2, np.where(decisions == INCREASE, prev + p.gamma1, prev))
     sugg = np.where(grown & lower, np.maximum(sugg, p.v_init), np.where(slow, np.minimum(sugg, prev), sugg))
     if turn_limited is not None:
