@@ -335,24 +335,8 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
     for the thesis rule alone."""
     decisions, notes = decide(passes, p)
     decisions = prune_isolated(decisions, s, p.prune_min_m)
-    lower = decisions == DECREASE
-    grown = np.zeros(len(lower), dtype=bool) if worsening is None else worsening & ~lower
-    slow = grown & (prev <= p.v_init + 1e-9)   # G6 acts above v_init only: below it the speeds are eq. 4.2's
-    grown &= ~slow
-    lower |= grown
-    if withhold is not None and np.any(lower & withhold):
-        notes.append(f"guard: {int(np.sum(lower & withhold))} decreases withheld where slowing down did not "
-                     f"cut the tracking error")
-        lower &= ~withhold
-    if np.any(grown & lower):     # said after G5, which may hold some of them back
-        notes.append(f"guard: {int(np.sum(grown & lower))} vertices lowered where the errors grew towards the "
-                     f"limit from trial to trial")
-    floored = slow | (grown & lower & (prev - p.gamma2 < p.v_init))
-    if np.any(floored):
-        notes.append(f"guard: {int(np.sum(floored))} vertices whose errors grew kept at v_init, or at their speed "
-                     f"below it")
-    sugg = np.where(lower, prev - p.gamma2, np.where(decisions == INCREASE, prev + p.gamma1, prev))
-    sugg = np.where(grown & lower, np.maximum(sugg, p.v_init), np.where(slow, np.minimum(sugg, prev), sugg))
+    sugg, lower, more = suggest(decisions, prev, p, withhold, worsening)
+    notes += more
     if turn_limited is not None:
         kept = lower & turn_limited & (sugg < np.minimum(prev, p.v_init))
         sugg = np.where(kept, np.minimum(prev, p.v_init), sugg)
@@ -380,6 +364,33 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
     sugg = np.maximum(sugg, 0.05)   # never schedule a standstill: the robot must finish the route
     sched, lim = limit(sugg, s, xy, p)
     return Proposal(sched, sugg, decisions, lim, notes, caps)
+
+
+def suggest(decisions: np.ndarray, prev: np.ndarray, p: SchedulerParams, withhold: np.ndarray | None = None,
+            worsening: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Eq. 4.2's suggestion from `decisions` and the speeds `prev`, with G5 (`withhold`: decreases kept at
+    their speed) and G6 (`worsening`: lowered by gamma2 but no further than v_init; at or below v_init kept
+    from rising). Returns the suggestion, the vertices lowered and the guard's notes."""
+    notes: list[str] = []
+    lower = decisions == DECREASE
+    grown = np.zeros(len(lower), dtype=bool) if worsening is None else worsening & ~lower
+    slow = grown & (prev <= p.v_init + 1e-9)   # G6 acts above v_init only: below it the speeds are eq. 4.2's
+    grown &= ~slow
+    lower |= grown
+    if withhold is not None and np.any(lower & withhold):
+        notes.append(f"guard: {int(np.sum(lower & withhold))} decreases withheld where slowing down did not "
+                     f"cut the tracking error")
+        lower &= ~withhold
+    if np.any(grown & lower):     # said after G5, which may hold some of them back
+        notes.append(f"guard: {int(np.sum(grown & lower))} vertices lowered where the errors grew towards the "
+                     f"limit from trial to trial")
+    floored = slow | (grown & lower & (prev - p.gamma2 < p.v_init))
+    if np.any(floored):
+        notes.append(f"guard: {int(np.sum(floored))} vertices whose errors grew kept at v_init, or at their speed "
+                     f"below it")
+    sugg = np.where(lower, prev - p.gamma2, np.where(decisions == INCREASE, prev + p.gamma1, prev))
+    sugg = np.where(grown & lower, np.maximum(sugg, p.v_init), np.where(slow, np.minimum(sugg, prev), sugg))
+    return sugg, lower, notes
 
 
 def plan(prev: np.ndarray, passes: VertexPasses, history: list[tuple[np.ndarray, VertexPasses]], s: np.ndarray,
