@@ -68,11 +68,11 @@ each criterion c (|e_L|, |e_H| of eq. 4.1 and |omega_cmd| of 4.2.2) and vertex i
   (G5b) a vertex goes back to an earlier trial's speed where slowing made it worse: where the latest pass
        took a tracking limit or more (its worst share of the limits nearby, as G5 reads it, >= 1) and an
        earlier trial passed faster (by at least gamma2 / 2) with a smaller worst share, it is scheduled
-       at that trial's speed (the one with the smallest share). G5 only stops the slowing; the vertex stays at the speed that did worse, trial
-       after trial (bench seed 3607's Grizzly s584978763, a 12.5 deg side slope and a slip patch in a
-       0.248 m corridor: 0.245 m at 0.5 m/s in trial 1, then 0.35-0.41 m at 0.26 m/s and below in trials
-       2-8, every one beyond the corridor). Not where the latest turn rate broke its criterion (slowing is
-       what cuts that).
+       at that trial's speed (the one with the smallest share). G5 only stops the slowing; the vertex
+       stays at the speed that did worse, trial after trial (bench seed 3607's Grizzly s584978763, a
+       12.5 deg side slope and a slip patch in a 0.248 m corridor: 0.245 m at 0.5 m/s in trial 1, then
+       0.35-0.41 m at 0.26 m/s and below in trials 2-8, every one beyond the corridor). Not where the
+       latest turn rate broke its criterion (slowing is what cuts that).
 
   (G6) a vertex is lowered where its errors grow from trial to trial towards the limit at a speed that
        does not explain it: a rut that deepens with every pass, a patch that wears. With the worst share
@@ -349,7 +349,8 @@ def next_schedule(prev: np.ndarray, passes: VertexPasses, s: np.ndarray, xy: np.
         # the thesis's use_all_trials caps a raise that reaches a failed speed; the guard (G7) one that comes
         # within eq. 4.2's step down of it, which is about as fast
         reach = failed_at - (p.gamma2 if p.guard else 0.0)
-        capped = (raised == INCREASE) & (sugg >= reach - 1e-9) & (sugg > held + 1e-9)   # 0.7 + 0.2 is 0.8999999999999999
+        # the 1e-9: 0.7 + 0.2 is 0.8999999999999999
+        capped = (raised == INCREASE) & (sugg >= reach - 1e-9) & (sugg > held + 1e-9)
         sugg = np.where(capped, held, sugg)
         if np.any(capped):
             notes.append(f"{int(np.sum(capped))} increases capped below speeds that failed in earlier trials")
